@@ -1,0 +1,320 @@
+"""HDF5 motion shards: the one file format between ``lsgan preprocess`` and everything downstream.
+
+Layout (format ``lsgan-motion-shard``, version 1; every string is UTF-8)::
+
+    /features            (F, 263) float32   all clips' frames, concatenated; chunked, gzip + shuffle
+    /clips/name          (N,) str           unique clip id ('M' + id for a mirrored copy)
+    /clips/offset        (N,) int64         first row of the clip in /features
+    /clips/length        (N,) int32         frames of the clip
+    /clips/split         (N,) str           'train' | 'val' | 'test'
+    /clips/action        (N,) int32         index into the root attribute action_names, -1 = none
+    /clips/source_file   (N,) str           input file the clip came from
+    /clips/mirror_of     (N,) str           id of the clip this one mirrors, '' if none
+    /captions/clip       (M,) int32         the clip each caption describes
+    /captions/text       (M,) str
+    /captions/tokens     (M,) str           word/POS tokens (HumanML3D style), may be ''
+    /captions/start      (M,) float32       seconds; start = end = 0 means the whole clip
+    /captions/end        (M,) float32
+    /stats/mean, /stats/std  (263,) float32 normalisation statistics (attribute 'origin' says whose)
+    /provenance          () str             JSON: inputs with sha256, options, source, versions
+
+Root attributes: format, format_version, lsgan_version, source, fps (20), feature_dim (263),
+num_joints (22), action_names (JSON list).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from lsgan import __version__
+from lsgan.data.clip import Caption
+from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS
+
+FORMAT = "lsgan-motion-shard"
+FORMAT_VERSION = 1
+_STR = h5py.string_dtype("utf-8")
+_CHUNK_ROWS = 1024
+
+
+@dataclass
+class ClipRecord:
+    """A featurised clip, ready to be stored."""
+
+    name: str
+    features: np.ndarray  # (T, 263) float32
+    split: str
+    source_file: str = ""
+    captions: list[Caption] = field(default_factory=list)
+    action: str | None = None
+    mirror_of: str | None = None
+
+
+class _Accumulator:
+    """Streaming per-feature mean and std (float64 sums) over the frames it is given."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.s = np.zeros(FEATURE_DIM)
+        self.ss = np.zeros(FEATURE_DIM)
+
+    def add(self, x: np.ndarray) -> None:
+        x = x.astype(np.float64)
+        self.n += len(x)
+        self.s += x.sum(0)
+        self.ss += (x * x).sum(0)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        from lsgan.data.features import group_std
+
+        if self.n == 0:
+            return np.zeros(FEATURE_DIM, np.float32), np.ones(FEATURE_DIM, np.float32)
+        mean = self.s / self.n
+        std = np.sqrt(np.maximum(self.ss / self.n - mean * mean, 0.0))
+        return mean.astype(np.float32), group_std(std)
+
+
+def atomic_path(path: Path) -> tuple[int, str]:
+    """A temporary file beside ``path`` (same filesystem, so a rename is atomic)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+
+
+def write_shard(
+    path: str | os.PathLike,
+    clips: Iterable[ClipRecord],
+    *,
+    source: str,
+    action_names: list[str],
+    provenance: dict,
+    stats: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
+    """Write clips (streamed, in order) to an HDF5 shard atomically; returns a summary.
+
+    ``stats`` keeps given Mean/Std (a processed HumanML3D folder's own); otherwise they are computed
+    on the train split with HumanML3D's rule (per-feature mean; std averaged within each group).
+    """
+    path = Path(path)
+    fd, tmp = atomic_path(path)
+    os.close(fd)
+    action_index = {a: i for i, a in enumerate(action_names)}
+    acc = _Accumulator()
+    cols: dict[str, list] = {k: [] for k in ("name", "offset", "length", "split", "action", "source_file", "mirror_of")}
+    caps: dict[str, list] = {k: [] for k in ("clip", "text", "tokens", "start", "end")}
+    try:
+        with h5py.File(tmp, "w", track_order=True) as f:
+            feats = f.create_dataset(
+                "features", shape=(0, FEATURE_DIM), maxshape=(None, FEATURE_DIM), dtype=np.float32,
+                chunks=(_CHUNK_ROWS, FEATURE_DIM), compression="gzip", compression_opts=1, shuffle=True,
+                track_times=False,
+            )
+            rows = 0
+            buffer: list[np.ndarray] = []
+            buffered = 0
+
+            def flush() -> None:
+                nonlocal buffered
+                if buffer:
+                    block = np.concatenate(buffer)
+                    feats.resize(feats.shape[0] + len(block), axis=0)
+                    feats[-len(block):] = block
+                    buffer.clear()
+                    buffered = 0
+
+            for clip in clips:
+                x = np.asarray(clip.features, dtype=np.float32)
+                if x.ndim != 2 or x.shape[1] != FEATURE_DIM:
+                    raise ValueError(f"clip {clip.name}: features of shape {x.shape}, expected (T, {FEATURE_DIM})")
+                i = len(cols["name"])
+                cols["name"].append(clip.name)
+                cols["offset"].append(rows)
+                cols["length"].append(len(x))
+                cols["split"].append(clip.split)
+                cols["action"].append(action_index[clip.action] if clip.action is not None else -1)
+                cols["source_file"].append(clip.source_file)
+                cols["mirror_of"].append(clip.mirror_of or "")
+                for c in clip.captions:
+                    caps["clip"].append(i)
+                    caps["text"].append(c.text)
+                    caps["tokens"].append(c.tokens)
+                    caps["start"].append(c.start)
+                    caps["end"].append(c.end)
+                if clip.split == "train" and stats is None:
+                    acc.add(x)
+                rows += len(x)
+                buffer.append(x)
+                buffered += len(x)
+                if buffered >= 16 * _CHUNK_ROWS:
+                    flush()
+            flush()
+
+            g = f.create_group("clips")
+            for key in ("name", "split", "source_file", "mirror_of"):
+                g.create_dataset(key, data=np.array(cols[key], dtype=object), dtype=_STR, track_times=False)
+            g.create_dataset("offset", data=np.array(cols["offset"], dtype=np.int64), track_times=False)
+            g.create_dataset("length", data=np.array(cols["length"], dtype=np.int32), track_times=False)
+            g.create_dataset("action", data=np.array(cols["action"], dtype=np.int32), track_times=False)
+            g = f.create_group("captions")
+            g.create_dataset("clip", data=np.array(caps["clip"], dtype=np.int32), track_times=False)
+            for key in ("text", "tokens"):
+                g.create_dataset(key, data=np.array(caps[key], dtype=object), dtype=_STR, track_times=False)
+            for key in ("start", "end"):
+                g.create_dataset(key, data=np.array(caps[key], dtype=np.float32), track_times=False)
+
+            mean, std = stats if stats is not None else acc.result()
+            g = f.create_group("stats")
+            g.create_dataset("mean", data=np.asarray(mean, np.float32), track_times=False)
+            g.create_dataset("std", data=np.asarray(std, np.float32), track_times=False)
+            g.attrs["origin"] = "source" if stats is not None else "train split (HumanML3D group rule)"
+            f.create_dataset("provenance", data=json.dumps(provenance, sort_keys=True), dtype=_STR, track_times=False)
+            f.attrs.update(
+                format=FORMAT, format_version=FORMAT_VERSION, lsgan_version=__version__, source=source,
+                fps=FPS, feature_dim=FEATURE_DIM, num_joints=NUM_JOINTS, action_names=json.dumps(action_names),
+            )
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return {"clips": len(cols["name"]), "frames": rows, "captions": len(caps["text"])}
+
+
+def _strings(ds) -> list[str]:
+    return [s.decode("utf-8") if isinstance(s, bytes) else s for s in ds[()]]
+
+
+class Shard:
+    """Read access to one shard. The clip table is loaded at once; features are read on demand.
+
+    >>> with Shard("bandai.h5") as shard:
+    ...     x = shard.features(0)          # (T, 263) float32
+    """
+
+    def __init__(self, path: str | os.PathLike, in_memory: bool = False) -> None:
+        self.path = Path(path)
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as e:
+            raise ValueError(f"{self.path}: not a readable HDF5 file ({e})") from None
+        f = self._file
+        if f.attrs.get("format") != FORMAT:
+            f.close()
+            raise ValueError(f"{self.path}: not an lsgan motion shard (format attribute is {f.attrs.get('format')!r})")
+        if int(f.attrs["format_version"]) > FORMAT_VERSION:
+            f.close()
+            raise ValueError(f"{self.path}: shard format {f.attrs['format_version']} is newer than this lsgan reads")
+        self.source: str = f.attrs["source"]
+        self.fps = int(f.attrs["fps"])
+        self.action_names: list[str] = json.loads(f.attrs["action_names"])
+        self.names = _strings(f["clips/name"])
+        self.offsets = f["clips/offset"][()]
+        self.lengths = f["clips/length"][()]
+        self.splits = np.array(_strings(f["clips/split"]))
+        self.actions = f["clips/action"][()]
+        self.source_files = _strings(f["clips/source_file"])
+        self.mirror_of = _strings(f["clips/mirror_of"])
+        self.mean = f["stats/mean"][()]
+        self.std = f["stats/std"][()]
+        self.stats_origin = f["stats"].attrs.get("origin", "")
+        cap_clip = f["captions/clip"][()]
+        texts, tokens = _strings(f["captions/text"]), _strings(f["captions/tokens"])
+        starts, ends = f["captions/start"][()], f["captions/end"][()]
+        self._captions: list[list[Caption]] = [[] for _ in self.names]
+        for i, c in enumerate(cap_clip):
+            self._captions[c].append(Caption(texts[i], tokens[i], float(starts[i]), float(ends[i])))
+        self._features = f["features"][()] if in_memory else f["features"]
+        self.attrs = dict(f.attrs)
+
+    @property
+    def provenance(self) -> dict:
+        return json.loads(self._file["provenance"][()])
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.lengths.sum())
+
+    def features(self, i: int, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Frames [start, stop) of clip i, (T, 263) float32."""
+        n = int(self.lengths[i])
+        stop = n if stop is None else min(stop, n)
+        o = int(self.offsets[i])
+        return np.asarray(self._features[o + start : o + stop], dtype=np.float32)
+
+    def captions(self, i: int) -> list[Caption]:
+        return list(self._captions[i])
+
+    def action(self, i: int) -> str | None:
+        a = int(self.actions[i])
+        return self.action_names[a] if a >= 0 else None
+
+    def indices(self, split: str | None = None) -> np.ndarray:
+        """Indices of the clips of a split (all when None)."""
+        return np.arange(len(self)) if split is None else np.flatnonzero(self.splits == split)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> Shard:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def summarize(path: str | os.PathLike) -> dict:
+    """What ``lsgan inspect`` prints: clips, frames, hours, captions, splits, labels and feature stats."""
+    with Shard(path) as shard:
+        lengths = shard.lengths
+        splits = {s: int((shard.splits == s).sum()) for s in sorted(set(shard.splits.tolist()))}
+        actions: dict[str, int] = {}
+        for a in shard.actions:
+            key = shard.action_names[a] if a >= 0 else "(none)"
+            actions[key] = actions.get(key, 0) + 1
+        n_caps = sum(len(c) for c in shard._captions)
+        return {
+            "path": str(shard.path),
+            "source": shard.source,
+            "format_version": int(shard.attrs["format_version"]),
+            "lsgan_version": str(shard.attrs["lsgan_version"]),
+            "clips": len(shard),
+            "mirrored": sum(1 for m in shard.mirror_of if m),
+            "frames": int(lengths.sum()),
+            "hours": float(lengths.sum() / shard.fps / 3600),
+            "fps": shard.fps,
+            "length_frames": {
+                "min": int(lengths.min()), "median": float(np.median(lengths)), "max": int(lengths.max()),
+            },
+            "captions": n_caps,
+            "clips_without_caption": sum(1 for c in shard._captions if not c),
+            "splits": splits,
+            "actions": dict(sorted(actions.items())),
+            "stats_origin": str(shard.stats_origin),
+            "mean_abs_mean": float(np.abs(shard.mean).mean()),
+            "std_groups": [float(shard.std[i]) for i in (0, 1, 3, 4, 67, 193, 259)],
+        }
+
+
+def format_summary(info: dict) -> str:
+    """A human-readable rendering of :func:`summarize`."""
+    lines = [
+        f"{info['path']}  (lsgan shard v{info['format_version']}, source {info['source']}, lsgan {info['lsgan_version']})",
+        f"  clips      {info['clips']:,}  ({info['mirrored']:,} mirrored)",
+        f"  frames     {info['frames']:,}  ({info['hours']:.2f} h at {info['fps']} fps);"
+        f" length min {info['length_frames']['min']}, median {info['length_frames']['median']:.0f},"
+        f" max {info['length_frames']['max']}",
+        f"  captions   {info['captions']:,}  ({info['clips_without_caption']:,} clips without one)",
+        "  splits     " + ", ".join(f"{k} {v:,}" for k, v in info["splits"].items()),
+        f"  labels     {len([a for a in info['actions'] if a != '(none)'])}",
+    ]
+    lines += [f"    {name:<24} {count:,}" for name, count in info["actions"].items()]
+    lines.append(f"  stats      {info['stats_origin']}; std per group " + ", ".join(f"{s:.4f}" for s in info["std_groups"]))
+    return "\n".join(lines)

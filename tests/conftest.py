@@ -1,0 +1,34 @@
+"""Shared test fixtures. Tests that need ../shared skip with a reason when it is absent."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"{path} is absent: this test reads the shared data beside the project root (../shared)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    return _need(SHARED)
+
+
+@pytest.fixture(scope="session")
+def hml_fixtures() -> Path:
+    return _need(SHARED / "fixtures" / "humanml3d")
+
+
+@pytest.fixture(scope="session")
+def bandai_dir() -> Path:
+    return _need(SHARED / "data" / "bandai-namco-2")
+
+
+@pytest.fixture(scope="session")
+def cmu_dir() -> Path:
+    return _need(SHARED / "data" / "cmu")
