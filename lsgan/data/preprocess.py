@@ -159,12 +159,14 @@ def process_chunk(source, items: list[str], mirror: bool | None, min_frames: int
                 pending.append(_mirrored(clip))
     if pending:
         try:
-            feats = joints_to_features([c.joints for c in pending])
+            with np.errstate(all="ignore"):  # a degenerate clip yields NaN features, reported below
+                feats = joints_to_features([c.joints for c in pending])
         except Exception:  # find the culprit(s) one by one
             feats = []
             for c in pending:
                 try:
-                    feats.append(joints_to_features(c.joints))
+                    with np.errstate(all="ignore"):
+                        feats.append(joints_to_features(c.joints))
                 except Exception as e:
                     feats.append(e)
         for clip, x in zip(pending, feats):

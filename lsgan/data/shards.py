@@ -81,9 +81,13 @@ class _Accumulator:
 
 
 def atomic_path(path: Path) -> tuple[int, str]:
-    """A temporary file beside ``path`` (same filesystem, so a rename is atomic)."""
+    """A temporary file beside ``path`` (same filesystem, so a rename is atomic), with the usual permissions."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    return tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    return fd, tmp
 
 
 def write_shard(
