@@ -57,7 +57,7 @@ def make_source(source: str, path: str | None, **opts):
 
         if not opts["body_models"]:
             raise click.UsageError("--source amass needs --body-models DIR (the SMPL-H model folder)")
-        return AmassSource(root=path, body_models=opts["body_models"], index_csv=opts["index_csv"])
+        return AmassSource(root=path, body_models=opts["body_models"], index_csv=opts["index_csv"], device=opts["device"])
     if source == "humanact12":
         from lsgan.data.sources.humanact12 import HumanAct12Source
 
@@ -87,6 +87,7 @@ Examples:
 @click.option("--texts", type=click.Path(exists=True, file_okay=False), help="joints: caption folder (default PATH/texts).")
 @click.option("--body-models", type=click.Path(exists=True, file_okay=False), help="amass: SMPL-H model folder.")
 @click.option("--index-csv", type=click.Path(exists=True, dir_okay=False), help="amass: HumanML3D's index.csv.")
+@click.option("--device", default="cpu", show_default=True, help="amass: torch device for the body model (cpu, cuda).")
 @click.option("--up-axis", type=click.Choice(["y", "z"]), default="y", show_default=True, help="humanact12: up axis of joints3D.")
 @click.option("--num-clips", default=400, show_default=True, help="synthetic: number of clips.")
 @click.option("--seed", default=0, show_default=True, help="synthetic: random seed.")
@@ -96,7 +97,7 @@ Examples:
 @click.option("--resume", is_flag=True, help="Continue an interrupted run from its OUTPUT.parts/ folder.")
 @click.option("--strict", is_flag=True, help="Stop at the first bad clip instead of skipping it.")
 @click.option("--report", type=click.Path(), help="Where to write the JSON report (default OUTPUT.report.json).")
-def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, texts, body_models, index_csv, up_axis,
+def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, texts, body_models, index_csv, device, up_axis,
                num_clips, seed, mirror, min_frames, workers, resume, strict, report) -> None:
     """Turn mocap or a dataset into HumanML3D features in an HDF5 shard (or a HumanML3D folder)."""
     from tqdm import tqdm
@@ -106,7 +107,7 @@ def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, te
     from lsgan.data.preprocess import preprocess as run
 
     src = make_source(source_name, path, preset=preset, joint_map=joint_map, scale=scale, fps=fps, texts=texts,
-                      body_models=body_models, index_csv=index_csv, up_axis=up_axis, num_clips=num_clips, seed=seed)
+                      body_models=body_models, index_csv=index_csv, device=device, up_axis=up_axis, num_clips=num_clips, seed=seed)
     bar = tqdm(total=0, unit="file", desc=f"preprocess {source_name}", file=sys.stderr, disable=None)
 
     def progress(done: int, total: int) -> None:

@@ -278,7 +278,7 @@ def preprocess(
         for k in todo:
             finished(k, process_chunk(source, chunks[k], mirror, min_frames))
     else:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
             futures = {k: pool.submit(process_chunk, source, chunks[k], mirror, min_frames) for k in todo}
             try:
                 for k in todo:
@@ -330,6 +330,12 @@ def preprocess(
     result.report = report_path
     shutil.rmtree(staging)
     return result
+
+
+def _init_worker() -> None:
+    """One thread per worker process: the workers already use the cores (torch reads this at import)."""
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = "1"
 
 
 def _write_report(path: Path, result: PreprocessResult, source) -> None:
