@@ -1,0 +1,1 @@
+"""Evaluation: the community's motion-generation metrics."""

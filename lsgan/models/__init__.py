@@ -1,0 +1,1 @@
+"""Models: the motion VAE, the latent GANs, text encoders, and their checkpoints."""

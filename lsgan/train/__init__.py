@@ -1,0 +1,1 @@
+"""Training loops (VAE, GAN) and what they share: devices, distributed runs, logs."""

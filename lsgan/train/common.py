@@ -1,0 +1,140 @@
+"""What every training loop shares: device choice, seeding, torchrun/DDP set-up, CSV/TensorBoard logs."""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import random
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN or infinite; the last good checkpoint is kept."""
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """'auto' -> cuda when available, else cpu; otherwise the named device."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda was asked for, but torch sees no CUDA device")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+@dataclass(frozen=True)
+class Dist:
+    """This process's place in a run: rank 0 of 1 unless started by torchrun."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def setup_distributed(device: torch.device) -> Dist:
+    """Join the process group when started by torchrun (RANK/WORLD_SIZE set): gloo on CPU, nccl on CUDA."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist()
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", rank=rank, world_size=world)
+    return Dist(rank=rank, world_size=world, local_rank=local)
+
+
+def local_device(device: torch.device, d: Dist) -> torch.device:
+    """One GPU per process under torchrun."""
+    if device.type == "cuda" and d.enabled:
+        torch.cuda.set_device(d.local_rank)
+        return torch.device("cuda", d.local_rank)
+    return device
+
+
+def all_reduce_mean(value: float, d: Dist, device: torch.device) -> float:
+    """The mean of a number over all processes (the number itself when not distributed)."""
+    if not d.enabled:
+        return value
+    t = torch.tensor([value], dtype=torch.float64, device=device)
+    dist.all_reduce(t)
+    return t.item() / d.world_size
+
+
+def teardown_distributed(d: Dist) -> None:
+    if d.enabled and dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
+
+
+def check_finite(losses: dict[str, float], step: int) -> None:
+    """Stop a run whose loss is NaN/inf, naming the loss and the step."""
+    for name, value in losses.items():
+        if not math.isfinite(value):
+            raise TrainingDiverged(f"{name} is {value} at step {step}; stopping (the last good checkpoint is kept)")
+
+
+class RunLog:
+    """Append rows of scalars to ``log.csv`` (and TensorBoard when it is installed). Rank 0 only."""
+
+    def __init__(self, folder: str | os.PathLike, enabled: bool = True, tensorboard: bool = True) -> None:
+        self.enabled = enabled
+        self.path = Path(folder) / "log.csv"
+        self._fields: list[str] | None = None
+        self._tb = None
+        if not enabled:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            with open(self.path, newline="") as f:
+                self._fields = next(csv.reader(f), None)
+        if tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self._tb = SummaryWriter(str(Path(folder) / "tb"))
+            except ImportError:
+                self._tb = None
+
+    def write(self, step: int, **scalars: float) -> None:
+        if not self.enabled:
+            return
+        row = {"step": step, **{k: float(v) for k, v in scalars.items()}}
+        if self._fields is None:
+            self._fields = list(row)
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self._fields)
+        for k in row:
+            if k not in self._fields:  # a new column: rewrite the header, keeping the rows
+                self._fields.append(k)
+                rows = list(csv.DictReader(open(self.path, newline="")))
+                with open(self.path, "w", newline="") as f:
+                    w = csv.DictWriter(f, self._fields)
+                    w.writeheader()
+                    w.writerows(rows)
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, self._fields).writerow(row)
+        if self._tb is not None:
+            for k, v in scalars.items():
+                self._tb.add_scalar(k, float(v), step)
+
+    def close(self) -> None:
+        if self._tb is not None:
+            self._tb.close()

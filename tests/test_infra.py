@@ -1,0 +1,92 @@
+"""Checkpoints, recipes, the latent cache format and the Fréchet distance."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from lsgan.eval.metrics import fid
+from lsgan.models.cache import StaleCache, read_latent_cache, write_latent_cache
+from lsgan.models.checkpoint import load_state, load_weights, resolve, save_checkpoint, weights_hash
+from lsgan.recipes import build, load_recipe
+from lsgan.train.common import RunLog, TrainingDiverged, check_finite
+
+
+def test_checkpoint_round_trip_is_exact_and_atomic(tmp_path):
+    model = torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.GELU(), torch.nn.Linear(8, 2))
+    opt = torch.optim.AdamW(model.parameters())
+    model(torch.randn(3, 4)).sum().backward()
+    opt.step()
+    save_checkpoint(tmp_path / "run" / "last", model=model, kind="toy", config={"w": 8}, step=7,
+                    state={"optimizer": opt.state_dict(), "rng": torch.get_rng_state()})
+    weights, meta = load_weights(tmp_path / "run", kind="toy")
+    for k, v in model.state_dict().items():
+        assert torch.equal(weights[k], v)
+    assert meta["step"] == 7 and meta["config"] == {"w": 8}
+    assert resolve(tmp_path / "run").name == "last"
+    state = load_state(tmp_path / "run")
+    assert state["optimizer"]["state"][0]["step"].item() == 1
+    with pytest.raises(ValueError, match="not a 'vae'"):
+        load_weights(tmp_path / "run", kind="vae")
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        resolve(tmp_path)
+    h = weights_hash(tmp_path / "run")
+    save_checkpoint(tmp_path / "run" / "last", model=model, kind="toy", config={}, step=8)
+    assert weights_hash(tmp_path / "run") == h  # same weights, same hash
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["last"]
+
+
+def test_recipes_build_dataclasses_and_refuse_unknown_keys(tmp_path):
+    from dataclasses import dataclass
+
+    @dataclass
+    class Cfg:
+        a: int = 1
+        b: float = 2.0
+
+    (tmp_path / "r.yaml").write_text("vae:\n  a: 3\n")
+    recipe = load_recipe(tmp_path / "r.yaml")
+    assert build(Cfg, recipe["vae"]).a == 3
+    with pytest.raises(ValueError, match="unknown key"):
+        build(Cfg, {"c": 1})
+    with pytest.raises(FileNotFoundError):
+        load_recipe(tmp_path / "missing.yaml")
+
+
+def test_latent_cache_round_trip_and_staleness(tmp_path):
+    rng = np.random.default_rng(0)
+    mu = rng.normal(size=(10, 8)).astype(np.float32)
+    path = write_latent_cache(
+        tmp_path / "c.h5", names=[f"c{i}" for i in range(10)], splits=["train"] * 8 + ["val"] * 2,
+        actions=np.arange(10) % 2, lengths=np.full(10, 60), mu=mu, logvar=np.zeros_like(mu),
+        caption_clip=np.array([0, 0, 1]), caption_text=["a", "b", "c"], caption_embedding=rng.normal(size=(3, 5)),
+        action_names=["walk", "wave"], vae_hash="abc", text_encoder="minilm:x",
+    )
+    c = read_latent_cache(path)
+    np.testing.assert_array_equal(c.mu, mu)
+    np.testing.assert_allclose(c.mean, mu[:8].mean(0), rtol=1e-5)
+    assert c.caption_embedding.shape == (3, 5) and c.action_names == ["walk", "wave"]
+    with pytest.raises(StaleCache, match="another VAE"):
+        read_latent_cache(path, expect_vae_hash="def")
+    with pytest.raises(StaleCache, match="text encoder"):
+        read_latent_cache(path, expect_text_encoder="clip")
+
+
+def test_fid_closed_forms():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(20000, 3))
+    assert fid(a, a) < 1e-8
+    assert abs(fid(a, a + np.array([2.0, 0.0, 0.0])) - 4.0) < 1e-6  # a shift adds its squared length
+
+
+def test_check_finite_and_run_log(tmp_path):
+    with pytest.raises(TrainingDiverged, match="loss is nan at step 3"):
+        check_finite({"loss": float("nan")}, 3)
+    log = RunLog(tmp_path, tensorboard=False)
+    log.write(1, loss=0.5)
+    log.write(2, loss=0.4, val=1.0)
+    lines = (tmp_path / "log.csv").read_text().splitlines()
+    assert lines[0] == "step,loss,val" and lines[2].startswith("2,0.4,1.0")
+    json.dumps(lines)
