@@ -26,6 +26,10 @@ def main() -> None:
     Pipeline:
       lsgan preprocess --source synthetic -o synth.h5
       lsgan inspect synth.h5
+      lsgan train-vae --data synth.h5 --recipe demo --out runs/vae
+      lsgan encode-latents --data synth.h5 --vae runs/vae -o cache.h5
+      lsgan train-gan --cache cache.h5 --recipe demo --out runs/gan
+      lsgan generate --gan runs/gan --vae runs/vae --text "a person walks forward" -o out/
     """
 
 
@@ -145,6 +149,182 @@ def inspect(file, as_json) -> None:
     except ValueError as e:
         _fail(str(e))
     click.echo(json.dumps(info, indent=1) if as_json else format_summary(info))
+
+
+def _recipe(recipe: str | None) -> dict:
+    from lsgan.recipes import load_recipe
+
+    if recipe is None:
+        return {}
+    try:
+        return load_recipe(recipe)
+    except (FileNotFoundError, ValueError) as e:
+        _fail(str(e))
+
+
+def _overrides(values: dict, **options) -> dict:
+    return {**values, **{k: v for k, v in options.items() if v is not None}}
+
+
+@main.command("train-vae", epilog="""\b
+Examples:
+  lsgan train-vae --data synth.h5 --recipe demo --out runs/vae
+  lsgan train-vae --data bandai.h5 --recipe recipes/bandai.yaml --out runs/bandai-vae --device cuda
+  lsgan train-vae --data bandai.h5 --recipe bandai --out runs/bandai-vae --resume
+  torchrun --nproc_per_node 4 -m lsgan.cli train-vae --data hml3d.h5 --recipe humanml3d --out runs/vae
+""")
+@click.option("--data", multiple=True, required=True, type=click.Path(exists=True, dir_okay=False), help="Shard(s) to train on.")
+@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its vae: section sets every hyperparameter.")
+@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv).")
+@click.option("--max-steps", type=int, help="Override the recipe's step budget.")
+@click.option("--batch-size", type=int, help="Override the recipe's batch size.")
+@click.option("--seed", type=int, help="Override the recipe's seed.")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+def train_vae_cmd(data, recipe, out, max_steps, batch_size, seed, device, resume) -> None:
+    """Train the motion VAE (MLD's skip-transformer VAE) on the train split of one or more shards."""
+    from lsgan.models.vae import VAEConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.common import TrainingDiverged
+    from lsgan.train.vae import VAETrainConfig, train_vae
+
+    r = section(_recipe(recipe), "vae")
+    try:
+        model = build(VAEConfig, section(r, "model"), "vae.model")
+        train = build(VAETrainConfig, _overrides(section(r, "train"), max_steps=max_steps, batch_size=batch_size,
+                                                seed=seed), "vae.train")
+        result = train_vae(list(data), out, model=model, train=train, device=device, resume=resume)
+    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
+        _fail(str(e))
+    click.echo(json.dumps(result), err=True)
+
+
+@main.command("encode-latents", epilog="""\b
+Examples:
+  lsgan encode-latents --data synth.h5 --vae runs/vae -o cache.h5
+  lsgan encode-latents --data hml3d.h5 --vae runs/vae --text-encoder clip-vit-l-14 --text-encoder-path clip-l14 -o cache.h5
+  lsgan encode-latents --data act12.h5 --vae runs/vae --text-encoder none -o cache.h5
+""")
+@click.option("--data", multiple=True, required=True, type=click.Path(exists=True, dir_okay=False), help="Shard(s) to encode.")
+@click.option("--vae", required=True, type=click.Path(exists=True), help="VAE run or checkpoint folder.")
+@click.option("-o", "--output", required=True, type=click.Path(), help="Latent cache (.h5) to write.")
+@click.option("--text-encoder", help="minilm (default), clip-vit-l-14, or none (default: the recipe's, else minilm).")
+@click.option("--recipe", help="Recipe whose text_encoder: key picks the encoder.")
+@click.option("--text-encoder-path", type=click.Path(exists=True), help="Local folder of the text encoder's weights.")
+@click.option("--min-frames", default=None, type=int, help="Shortest window (default: the VAE's training setting).")
+@click.option("--max-frames", default=None, type=int, help="Longest window (default: the VAE's training setting).")
+@click.option("--batch-size", default=64, show_default=True)
+@click.option("--device", default="auto", show_default=True)
+def encode_latents_cmd(data, vae, output, text_encoder, recipe, text_encoder_path, min_frames, max_frames, batch_size,
+                       device) -> None:
+    """Cache the VAE latent (mean, log-variance) of every window and the embedding of every caption."""
+    from lsgan.models.cache import encode_latents
+    from lsgan.models.checkpoint import read_meta
+
+    text_encoder = text_encoder or _recipe(recipe).get("text_encoder") or "minilm"
+    try:
+        train_cfg = read_meta(vae)["config"].get("train", {})
+        path = encode_latents(
+            list(data), vae, output, text_encoder=None if text_encoder == "none" else text_encoder,
+            text_encoder_path=text_encoder_path, min_frames=min_frames or train_cfg.get("min_frames", 40),
+            max_frames=max_frames or train_cfg.get("max_frames", 196), batch_size=batch_size, device=device,
+        )
+    except Exception as e:  # noqa: BLE001 - every failure here is the user's input: report it plainly
+        _fail(f"{type(e).__name__}: {e}" if not isinstance(e, (ValueError, FileNotFoundError)) else str(e))
+    click.echo(f"wrote {path}", err=True)
+
+
+@main.command("train-gan", epilog="""\b
+Examples:
+  lsgan train-gan --cache cache.h5 --recipe demo --out runs/gan
+  lsgan train-gan --cache cache.h5 --arch vanilla-wgan-gp --cond text --max-steps 20000 --out runs/vwgan
+  lsgan train-gan --cache act12_cache.h5 --recipe humanact12 --cond action --out runs/act-gan
+""")
+@click.option("--cache", required=True, type=click.Path(exists=True, dir_okay=False), help="Latent cache from encode-latents.")
+@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its gan: section sets every hyperparameter.")
+@click.option("--arch", type=click.Choice(["vanilla-gan", "vanilla-wgan-gp", "deep-gan", "deep-wgan-gp"]),
+              help="GAN variant (default: the recipe's, else deep-wgan-gp).")
+@click.option("--cond", type=click.Choice(["text", "action"]), help="Condition on caption embeddings or action labels.")
+@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv).")
+@click.option("--max-steps", type=int, help="Override the recipe's number of generator steps.")
+@click.option("--seed", type=int)
+@click.option("--vae", type=click.Path(exists=True), help="Check the cache against this VAE (default: the VAE it was encoded with).")
+@click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded.")
+@click.option("--device", default="auto", show_default=True)
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_stale, device, resume) -> None:
+    """Train a latent GAN from the cache alone (the VAE is never run while training).
+
+    The cache is refused when its VAE checkpoint has changed since it was encoded (a stale cache), so a
+    GAN never learns latents its decoder does not understand.
+    """
+    from lsgan.models.cache import read_cache_attrs
+    from lsgan.models.checkpoint import weights_hash
+    from lsgan.models.gan import GANConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.common import TrainingDiverged
+    from lsgan.train.gan import GANTrainConfig, train_gan
+
+    r = section(_recipe(recipe), "gan")
+    try:
+        expect = None
+        if not allow_stale:
+            vae_path = vae or read_cache_attrs(cache).get("vae_path")
+            if vae_path and Path(vae_path).exists():
+                expect = weights_hash(vae_path)
+        gan = build(GANConfig, _overrides(section(r, "model"), arch=arch, cond=cond), "gan.model")
+        train = build(GANTrainConfig, _overrides(section(r, "train"), max_steps=max_steps, seed=seed), "gan.train")
+        result = train_gan(cache, out, gan=gan, train=train, device=device, resume=resume, expect_vae_hash=expect)
+    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
+        _fail(str(e))
+    click.echo(json.dumps(result, default=str), err=True)
+
+
+@main.command(epilog="""\b
+Examples:
+  lsgan generate --gan runs/gan --vae runs/vae --text "a person walks forward" -o out/
+  lsgan generate --gan runs/gan --vae runs/vae --text "someone jumps twice" --seconds 4 --num 4 --seed 1 -o out/
+  lsgan generate --gan runs/gan --vae runs/vae --prompts prompts.txt -o out/     # lines: 'prompt' or 'prompt#frames'
+  lsgan generate --gan runs/act-gan --vae runs/vae --action jump --num 8 -o out/
+""")
+@click.option("--gan", required=True, type=click.Path(exists=True), help="GAN run or checkpoint folder.")
+@click.option("--vae", required=True, type=click.Path(exists=True), help="The VAE whose latents the GAN learned.")
+@click.option("--text", "texts", multiple=True, help="A prompt (repeat for several).")
+@click.option("--prompts", type=click.Path(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
+@click.option("--action", "actions", multiple=True, help="An action label, for action-conditioned models (repeatable).")
+@click.option("--frames", type=int, help="Length in frames at 20 fps (default 120).")
+@click.option("--seconds", type=float, help="Length in seconds (instead of --frames).")
+@click.option("--num", default=1, show_default=True, help="Motions per prompt or action.")
+@click.option("--seed", default=0, show_default=True, help="Random seed: the same seed gives the same motions.")
+@click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder (CLIP).")
+@click.option("--batch-size", default=256, show_default=True)
+@click.option("--device", default="auto", show_default=True)
+@click.option("-o", "--output", required=True, type=click.Path(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
+def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path, batch_size, device, output) -> None:
+    """Generate motions from sentences or action labels: one generator pass, one VAE decoder pass."""
+    from lsgan.generate import Request, read_prompts, write_generation
+    from lsgan.generate import generate as run
+
+    if frames is not None and seconds is not None:
+        raise click.UsageError("give --frames or --seconds, not both")
+    n_frames = frames if frames is not None else (round(seconds * 20) if seconds is not None else 120)
+    if n_frames < 4:
+        raise click.UsageError("a motion needs at least 4 frames")
+    requests = [Request(text=t, frames=n_frames) for t in texts] + [Request(action=a, frames=n_frames) for a in actions]
+    if prompts:
+        requests += read_prompts(prompts, n_frames)
+    if not requests:
+        raise click.UsageError("give --text, --prompts or --action")
+    try:
+        result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
+                     batch_size=batch_size)
+        manifest = write_generation(result, output)
+    except (ValueError, FileNotFoundError) as e:
+        _fail(str(e))
+    t = result.timings_s
+    click.echo(f"{len(result.motions)} motions in {output} ({manifest.name}); {result.ms_per_motion:.2f} ms per motion "
+               f"(text {t['text_encoding'] * 1e3:.1f} ms, generator {t['generator'] * 1e3:.1f} ms, "
+               f"VAE decoder {t['vae_decoding'] * 1e3:.1f} ms in all)", err=True)
 
 
 if __name__ == "__main__":

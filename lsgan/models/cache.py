@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,7 +86,8 @@ def write_latent_cache(
     path = Path(path)
     splits = np.asarray(splits)
     mu, logvar = np.asarray(mu, np.float32), np.asarray(logvar, np.float32)
-    emb = np.asarray(caption_embedding, np.float32).reshape(len(caption_text), -1)
+    emb = np.asarray(caption_embedding, np.float32)
+    emb = emb.reshape(len(caption_text), -1) if emb.size else np.zeros((len(caption_text), 0), np.float32)
     mean, std = latent_stats(mu, splits)
     fd, tmp = atomic_path(path)
     os.close(fd)
@@ -122,6 +124,14 @@ def write_latent_cache(
 
 def _strings(ds) -> list[str]:
     return [s.decode("utf-8") if isinstance(s, bytes) else s for s in ds[()]]
+
+
+def read_cache_attrs(path: str | os.PathLike) -> dict:
+    """The root attributes of a cache (cheap: no arrays are read)."""
+    with h5py.File(path, "r") as f:
+        if f.attrs.get("format") != FORMAT:
+            raise ValueError(f"{path}: not an lsgan latent cache (made by `lsgan encode-latents`)")
+        return dict(f.attrs)
 
 
 def read_latent_cache(
@@ -164,3 +174,98 @@ def read_latent_cache(
             text_encoder=str(attrs["text_encoder"]),
             attrs=attrs,
         )
+
+
+WINDOW_POLICY = (
+    "one entry per training window (as MotionDataset builds them: each captioned time span is its own "
+    "window, whole-clip captions share the full clip); windows longer than max_frames are centre-cropped "
+    "to max_frames; lengths are rounded down to a multiple of 4; windows shorter than min_frames are left out"
+)
+
+
+def encode_latents(
+    data: str | os.PathLike | list[str | os.PathLike],
+    vae: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    text_encoder: str | None = "minilm",
+    text_encoder_path: str | None = None,
+    min_frames: int = 40,
+    max_frames: int = 196,
+    batch_size: int = 64,
+    device: str = "auto",
+    progress: bool = True,
+) -> Path:
+    """Encode every window of every split once with the VAE (mean, log-variance) and every caption once
+    with the text encoder, into a latent cache the GAN trains from (see :data:`WINDOW_POLICY`).
+
+    ``text_encoder=None`` stores no caption embeddings (action-conditioned data).
+    """
+    import torch
+    from tqdm import tqdm
+
+    from lsgan.data.dataset import MotionDataset
+    from lsgan.models.checkpoint import resolve, weights_hash
+    from lsgan.models.vae import load_vae
+    from lsgan.train.common import pick_device
+
+    dev = pick_device(device)
+    model, meta = load_vae(vae, device=dev)
+    ds = MotionDataset(data, split=None, min_frames=min_frames, max_frames=max_frames, crop_long=True,
+                       mean=meta["mean"], std=meta["std"])
+    if len(ds) == 0:
+        raise ValueError(f"{data}: no clip of {min_frames} frames or more to encode")
+    spans = []
+    for w in ds.windows:
+        n = min(w.stop - w.start, max_frames)
+        n = max(4, n // 4 * 4) if n >= 4 else n
+        start = w.start + (w.stop - w.start - n) // 2
+        spans.append((start, start + n))
+    order = sorted(range(len(ds.windows)), key=lambda i: spans[i][1] - spans[i][0])
+    mu = np.zeros((len(ds.windows), model.config.latent_dim), np.float32)
+    logvar = np.zeros_like(mu)
+    bar = tqdm(total=len(order), desc="encode latents", unit="window", disable=not progress or None, file=sys.stderr)
+    with torch.no_grad():
+        for b in range(0, len(order), batch_size):
+            idx = order[b : b + batch_size]
+            xs = []
+            for i in idx:
+                w = ds.windows[i]
+                x = ds._shard(w.shard).features(w.clip, *spans[i])
+                xs.append(torch.from_numpy((x - ds.mean) / ds.std))
+            lengths = torch.tensor([len(x) for x in xs])
+            batch = torch.nn.utils.rnn.pad_sequence(xs, batch_first=True).to(dev)
+            mask = (torch.arange(batch.shape[1])[None] < lengths[:, None]).to(dev)
+            m, lv = model.encode(batch, mask)
+            mu[idx], logvar[idx] = m.float().cpu().numpy(), lv.float().cpu().numpy()
+            bar.update(len(idx))
+    bar.close()
+
+    names, splits, actions, lengths = [], [], [], []
+    cap_clip, cap_text = [], []
+    for i, w in enumerate(ds.windows):
+        name = ds.names[w.shard][w.clip]
+        full = w.start == 0 and w.stop == ds._shard(w.shard).lengths[w.clip]
+        names.append(name if full else f"{name}#{w.start}-{w.stop}")
+        splits.append(ds._shard(w.shard).splits[w.clip])
+        actions.append(int(ds.actions[w.shard][w.clip]))
+        lengths.append(spans[i][1] - spans[i][0])
+        for k in w.captions:
+            cap_clip.append(i)
+            cap_text.append(ds.captions[w.shard][w.clip][k].text)
+    encoder_id, emb = "", np.zeros((len(cap_text), 0), np.float32)
+    if text_encoder is not None and cap_text:
+        from lsgan.models.text import load_text_encoder
+
+        enc = load_text_encoder(text_encoder, path=text_encoder_path, device=dev)
+        unique = sorted(set(cap_text))
+        table = enc.encode(unique).float().cpu().numpy()
+        row = {t: j for j, t in enumerate(unique)}
+        emb = table[[row[t] for t in cap_text]]
+        encoder_id = enc.id
+    return write_latent_cache(
+        out, names=names, splits=np.array(splits), actions=np.array(actions), lengths=np.array(lengths),
+        mu=mu, logvar=logvar, caption_clip=np.array(cap_clip, dtype=np.int64), caption_text=cap_text,
+        caption_embedding=emb, action_names=ds.action_names, vae_hash=weights_hash(vae),
+        vae_path=str(resolve(vae)), text_encoder=encoder_id, data=[str(p) for p in ds.paths], window=WINDOW_POLICY,
+    )

@@ -1,0 +1,168 @@
+"""MLD's skip-transformer motion VAE: a motion (T,263) <-> one Gaussian latent z (Z,).
+
+Encoder: Linear(263->d), two learned distribution tokens prepended, positional encoding, a skip
+transformer over [mu_token, logvar_token, frames] with padded frames masked out; the outputs at the two
+tokens are mu and log-variance. Decoder: T query tokens (zeros + positional encoding) self-attend (padded
+frames masked) and cross-attend to z as a one-token memory; Linear(d->263); padded frames set to zero.
+
+Skip transformer (MLD): (L-1)/2 input blocks, 1 middle block, (L-1)/2 output blocks; output block i
+takes [h, activations of input block L/2-i] (2d) projected back to d, then a final LayerNorm.
+Layers are pre-norm (``norm_first=True``, the default): it trains stably without warm-up and pairs with
+the final LayerNorm; ``norm_first=False`` gives MLD's post-norm layers.
+
+Code defaults are small (quick runs, tests); the paper's sizes (9 layers, d=256, ff=1024) live in recipes.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from lsgan.models.checkpoint import load_weights
+
+
+@dataclass
+class VAEConfig:
+    nfeats: int = 263
+    latent_dim: int = 256  # Z: what the GAN generates
+    d_model: int = 128
+    num_layers: int = 3  # per encoder and per decoder; odd (input blocks + middle + output blocks)
+    num_heads: int = 4
+    ff_size: int = 256
+    dropout: float = 0.1
+    activation: str = "gelu"
+    position_embedding: str = "learned"  # "learned" | "sine"
+    max_len: int = 1024  # longest motion (frames) the positional encoding covers
+    norm_first: bool = True  # pre-norm layers (False: MLD's post-norm)
+
+    def __post_init__(self) -> None:
+        if self.num_layers < 1 or self.num_layers % 2 == 0:
+            raise ValueError(f"num_layers must be odd (input blocks, a middle block, output blocks), got {self.num_layers}")
+        if self.d_model % self.num_heads:
+            raise ValueError(f"d_model ({self.d_model}) must be divisible by num_heads ({self.num_heads})")
+        if self.position_embedding not in ("learned", "sine"):
+            raise ValueError(f"position_embedding must be 'learned' or 'sine', got {self.position_embedding!r}")
+
+
+class PositionalEncoding(nn.Module):
+    """Adds a position code to (B,T,d): a learned table or fixed sinusoids."""
+
+    def __init__(self, d: int, max_len: int, kind: str) -> None:
+        super().__init__()
+        if kind == "learned":
+            self.table = nn.Parameter(torch.rand(max_len, d))  # MLD: uniform [0,1); O(1) like the sinusoids
+        else:
+            pos = torch.arange(max_len, dtype=torch.float32)[:, None]
+            freq = torch.exp(torch.arange(0, d, 2, dtype=torch.float32) * (-math.log(10000.0) / d))
+            table = torch.zeros(max_len, d)
+            table[:, 0::2] = torch.sin(pos * freq)
+            table[:, 1::2] = torch.cos(pos * freq)
+            self.register_buffer("table", table, persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[1] > self.table.shape[0]:
+            raise ValueError(f"sequence of {x.shape[1]} positions, the positional encoding covers {self.table.shape[0]} (max_len)")
+        return x + self.table[: x.shape[1]].to(x.dtype)
+
+
+class SkipTransformer(nn.Module):
+    """MLD's U-shaped stack: input blocks, a middle block, output blocks fed [h, skip] -> Linear(2d->d)."""
+
+    def __init__(self, make_layer, num_layers: int, d: int) -> None:
+        super().__init__()
+        n = (num_layers - 1) // 2
+        self.input_blocks = nn.ModuleList(make_layer() for _ in range(n))
+        self.middle_block = make_layer()
+        self.output_blocks = nn.ModuleList(make_layer() for _ in range(n))
+        self.skip_proj = nn.ModuleList(nn.Linear(2 * d, d) for _ in range(n))
+        self.norm = nn.LayerNorm(d)
+
+    def forward(self, h: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+        """h (B,S,d) -> (B,S,d); args/kwargs go to every layer (memory, padding mask)."""
+        skips = []
+        for block in self.input_blocks:
+            h = block(h, *args, **kwargs)
+            skips.append(h)
+        h = self.middle_block(h, *args, **kwargs)
+        for block, proj in zip(self.output_blocks, self.skip_proj):
+            h = block(proj(torch.cat([h, skips.pop()], dim=-1)), *args, **kwargs)  # (B,S,2d) -> (B,S,d)
+        return self.norm(h)
+
+
+class MotionVAE(nn.Module):
+    """x (B,T,263) normalised features + mask (B,T) True on real frames <-> z (B,Z)."""
+
+    def __init__(self, config: VAEConfig) -> None:
+        super().__init__()
+        self.config = c = config
+        d = c.d_model
+        self.skel_embed = nn.Linear(c.nfeats, d)
+        self.dist_tokens = nn.Parameter(torch.randn(2, d))  # [mu token, logvar token]
+        self.enc_pos = PositionalEncoding(d, c.max_len + 2, c.position_embedding)
+        self.dec_pos = PositionalEncoding(d, c.max_len, c.position_embedding)
+        layer = dict(d_model=d, nhead=c.num_heads, dim_feedforward=c.ff_size, dropout=c.dropout,
+                     activation=c.activation, batch_first=True, norm_first=c.norm_first)
+        self.encoder = SkipTransformer(lambda: nn.TransformerEncoderLayer(**layer), c.num_layers, d)
+        self.decoder = SkipTransformer(lambda: nn.TransformerDecoderLayer(**layer), c.num_layers, d)
+        same = c.latent_dim == d
+        self.to_mu = nn.Identity() if same else nn.Linear(d, c.latent_dim)
+        self.to_logvar = nn.Identity() if same else nn.Linear(d, c.latent_dim)
+        self.from_latent = nn.Identity() if same else nn.Linear(c.latent_dim, d)
+        self.final = nn.Linear(d, c.nfeats)
+
+    def encode(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,T,263), (B,T) -> mu (B,Z), logvar (B,Z). Padded frames never reach a real token."""
+        B = x.shape[0]
+        x = x.masked_fill(~mask[..., None], 0.0)  # garbage (even NaN) in padding cannot leak through 0-weights
+        h = self.skel_embed(x)  # (B,T,d)
+        h = torch.cat([self.dist_tokens.expand(B, -1, -1).to(h.dtype), h], dim=1)  # (B,2+T,d)
+        h = self.enc_pos(h)
+        pad = torch.cat([mask.new_zeros(B, 2), ~mask], dim=1)  # (B,2+T) True = ignore
+        h = self.encoder(h, src_key_padding_mask=pad)  # (B,2+T,d)
+        return self.to_mu(h[:, 0]), self.to_logvar(h[:, 1])
+
+    def decode(self, z: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """z (B,Z), mask (B,T) -> (B,T,263), exactly zero on padded frames."""
+        B, T = mask.shape
+        memory = self.from_latent(z)[:, None]  # (B,1,d)
+        queries = self.dec_pos(memory.new_zeros(B, T, self.config.d_model))  # (B,T,d)
+        h = self.decoder(queries, memory, tgt_key_padding_mask=~mask)  # (B,T,d)
+        return self.final(h).masked_fill(~mask[..., None], 0.0)  # (B,T,263)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, sample: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Reconstruction (B,T,263), mu, logvar; z = mu + sigma * eps when sampling, else mu."""
+        mu, logvar = self.encode(x, mask)
+        z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
+        return self.decode(z, mask), mu, logvar
+
+
+def vae_loss(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor, mask: torch.Tensor,
+             kl_weight: float) -> dict[str, torch.Tensor]:
+    """MSE over the real frames' features + kl_weight * KL(q(z|x) || N(0,I)).
+
+    KL is averaged over the batch and the latent dimensions, as MLD's KLLoss does, so the paper's weight
+    (1e-4) means the same thing here.
+    """
+    m = mask[..., None].to(x.dtype)
+    recon = ((x_hat - x) ** 2 * m).sum() / (m.sum() * x.shape[-1]).clamp_min(1.0)
+    kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).mean()
+    return {"total": recon + kl_weight * kl, "recon": recon, "kl": kl}
+
+
+def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu", prefer: str = "best") -> tuple[MotionVAE, dict]:
+    """A trained VAE (eval mode) from a checkpoint folder or run folder, and its meta.
+
+    meta is the checkpoint's config.json plus ``mean``/``std`` (263,) float32: the normalisation the
+    VAE was trained with, so decoding needs no shard.
+    """
+    state, meta = load_weights(path, prefer=prefer, kind="vae")
+    model = MotionVAE(VAEConfig(**meta["config"]["model"]))
+    model.load_state_dict(state)
+    extra = meta.get("extra", {})
+    meta["mean"] = np.asarray(extra["mean"], np.float32)
+    meta["std"] = np.asarray(extra["std"], np.float32)
+    return model.to(device).eval(), meta

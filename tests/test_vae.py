@@ -1,0 +1,221 @@
+"""The skip-transformer VAE and its training loop, on tiny configs (the whole file runs in well under a minute)."""
+from __future__ import annotations
+
+import csv
+from dataclasses import asdict, replace
+
+import numpy as np
+import pytest
+import torch
+
+from lsgan.data.features import joints_to_features
+from lsgan.data.shards import ClipRecord, write_shard
+from lsgan.data.skeleton import PARENTS, TARGET_OFFSETS
+from lsgan.models.checkpoint import load_state, load_weights, read_meta, save_checkpoint
+from lsgan.models.vae import MotionVAE, VAEConfig, load_vae, vae_loss
+from lsgan.train.common import TrainingDiverged
+from lsgan.train.vae import VAETrainConfig, train_vae
+
+TINY = VAEConfig(d_model=32, num_layers=3, num_heads=4, ff_size=64, latent_dim=32, dropout=0.1, max_len=256)
+
+
+def _rot_x(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def _rot_y(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def _walk(T: int, speed: float, freq: float, swing: float, turn: float) -> np.ndarray:
+    """A crude walk (T,22,3): legs and arms swing about x, the root turns and moves forward, bobbing."""
+    t = np.arange(T) / 20.0
+    phase = 2 * np.pi * freq * t
+    local = np.broadcast_to(np.eye(3), (T, 22, 3, 3)).copy()
+    local[:, 0] = _rot_y(turn * t)
+    for j, sign in ((1, 1), (2, -1), (16, -1), (17, 1)):  # hips and shoulders, in antiphase
+        local[:, j] = _rot_x(sign * swing * np.sin(phase))
+    for j, sign in ((4, 1), (5, -1)):  # knees bend only backwards
+        local[:, j] = _rot_x(swing * np.maximum(0.0, sign * np.sin(phase)))
+    yaw = turn * t
+    root = np.stack([np.cumsum(speed * np.sin(yaw)) / 20, 0.95 + 0.02 * np.cos(2 * phase), np.cumsum(speed * np.cos(yaw)) / 20], -1)
+    world = np.empty_like(local)
+    joints = np.empty((T, 22, 3))
+    world[:, 0], joints[:, 0] = local[:, 0], root
+    for j in range(1, 22):
+        p = PARENTS[j]
+        world[:, j] = world[:, p] @ local[:, j]
+        joints[:, j] = joints[:, p] + world[:, p] @ TARGET_OFFSETS[j].astype(np.float64)
+    return joints
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models gain nothing from intra-op threads, and on a busy machine threads spin-wait each other."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def shard(tmp_path_factory) -> str:
+    """Three short walks, each three times in 'train' (a batch averages three posterior samples) and once in 'val'."""
+    rng = np.random.default_rng(0)
+    walks = [_walk(int(rng.integers(44, 56)) // 4 * 4 + 1, rng.uniform(0.5, 1.0), rng.uniform(0.6, 1.2),
+                   rng.uniform(0.2, 0.6), rng.uniform(-0.3, 0.3)) for _ in range(3)]
+    feats = joints_to_features(walks)  # 44, 48 or 52 frames: whole windows when unit_length=1
+    clips = [ClipRecord(f"t{k}-{i}", f, "train") for k in range(3) for i, f in enumerate(feats)]
+    clips += [ClipRecord(f"v{i}", f, "val") for i, f in enumerate(feats)]
+    path = tmp_path_factory.mktemp("vae") / "walks.h5"
+    write_shard(path, clips, source="test", action_names=[], provenance={})
+    return str(path)
+
+
+def _batch(lengths: list[int], T: int | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    T = T or max(lengths)
+    x = torch.randn(len(lengths), T, 263, generator=g)
+    mask = torch.arange(T)[None] < torch.tensor(lengths)[:, None]
+    return x, mask
+
+
+@pytest.mark.parametrize("config", [TINY, replace(TINY, position_embedding="sine", latent_dim=16, norm_first=False)],
+                         ids=["learned", "sine-post-norm-projected"])
+def test_shapes_and_masks(config):
+    torch.manual_seed(0)
+    vae = MotionVAE(config)
+    x, mask = _batch([50, 31, 7])
+    x_hat, mu, logvar = vae(x, mask)
+    assert x_hat.shape == x.shape and mu.shape == logvar.shape == (3, config.latent_dim)
+    assert torch.all(x_hat[~mask] == 0)  # padded frames are exactly zero, even in training mode
+
+    vae.eval()
+    with torch.no_grad():
+        mu, logvar = vae.encode(x, mask)
+        garbage = x.clone()
+        garbage[~mask] = torch.randn(int((~mask).sum()), 263) * 1e3
+        garbage[2, -1] = float("nan")
+        mu2, logvar2 = vae.encode(garbage, mask)
+        assert torch.equal(mu, mu2) and torch.equal(logvar, logvar2)  # padded frames are ignored
+
+        alone_mu, alone_logvar = vae.encode(x[1:2, :31], mask[1:2, :31])  # clip 1 without padding
+        torch.testing.assert_close(alone_mu[0], mu[1], atol=1e-5, rtol=0)
+        torch.testing.assert_close(alone_logvar[0], logvar[1], atol=1e-5, rtol=0)
+        out = vae.decode(mu, mask)
+        alone = vae.decode(mu[1:2], mask[1:2, :31])
+        torch.testing.assert_close(alone[0], out[1, :31], atol=1e-5, rtol=0)
+        assert torch.equal(vae(x, mask, sample=False)[0], out)  # no sampling: z = mu
+
+
+@pytest.mark.parametrize("layers", [0, 2, 4, 8])
+def test_even_layer_counts_are_rejected(layers):
+    with pytest.raises(ValueError, match="odd"):
+        VAEConfig(num_layers=layers)
+    with pytest.raises(ValueError, match="divisible"):
+        VAEConfig(d_model=30, num_heads=4)
+
+
+def test_loss_counts_real_frames_only():
+    x, mask = _batch([10, 4], T=10)
+    x_hat = x.clone()
+    x_hat[1, 4:] += 100.0  # error on padding only
+    mu, logvar = torch.zeros(2, 8), torch.zeros(2, 8)
+    loss = vae_loss(x_hat, x, mu, logvar, mask, kl_weight=0.5)
+    assert loss["recon"].item() == 0 and loss["kl"].item() == 0 and loss["total"].item() == 0
+    x_hat[0, 0, 0] += 1.0
+    loss = vae_loss(x_hat, x, mu + 1.0, logvar, mask, kl_weight=0.5)
+    assert loss["recon"].item() == pytest.approx(1 / (14 * 263))
+    assert loss["kl"].item() == pytest.approx(0.5)  # 0.5 * mu^2, averaged over dims and batch (as MLD)
+    assert loss["total"].item() == pytest.approx(loss["recon"].item() + 0.25)
+
+
+def _log(out) -> list[dict]:
+    with open(out / "log.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_overfits_a_handful_of_clips(shard, tmp_path):
+    """Global MPJPE (root trajectory integrated) of the three walks falls over tenfold in 500 steps.
+
+    unit_length=1 keeps every window whole, so the VAE sees the same three clips again and again; the
+    first validation comes after 5 steps, before the model has learnt much more than the mean motion.
+    """
+    model = replace(TINY, dropout=0.0)
+    cfg = VAETrainConfig(lr=1e-2, kl_weight=1e-6, batch_size=16, max_steps=500, val_every=5, ckpt_every=250,
+                         log_every=50, unit_length=1, seed=0)
+    metrics = train_vae(shard, tmp_path, model=model, train=cfg, device="cpu", progress=False)
+    vals = [float(r["val_mpjpe_m"]) for r in _log(tmp_path) if r.get("val_mpjpe_m")]
+    assert len(vals) == 100 and metrics["step"] == 500
+    assert vals[-1] < vals[0] / 10, vals
+    assert metrics["val_mpjpe_m"] == pytest.approx(vals[-1])
+    assert metrics["best_val_mpjpe_m"] == pytest.approx(min(vals))
+    meta = read_meta(tmp_path, "best")
+    assert meta["extra"]["val_mpjpe_m"] == pytest.approx(min(vals)) and meta["kind"] == "vae"
+    assert read_meta(tmp_path, "last")["step"] == 500
+
+    vae, meta = load_vae(tmp_path)  # the run folder's best/, with the normalisation to decode without a shard
+    assert not vae.training and meta["mean"].shape == meta["std"].shape == (263,)
+    assert meta["config"]["model"] == asdict(model) and meta["config"]["train"]["lr"] == 1e-2
+
+
+def test_checkpoint_round_trip_is_exact(tmp_path):
+    torch.manual_seed(0)
+    vae = MotionVAE(replace(TINY, latent_dim=16)).eval()
+    mean, std = np.linspace(-1, 1, 263).tolist(), np.linspace(0.1, 2, 263).tolist()
+    save_checkpoint(tmp_path / "ckpt", model=vae, kind="vae", config={"model": asdict(vae.config), "train": {}},
+                    step=7, extra={"mean": mean, "std": std})
+    loaded, meta = load_vae(tmp_path / "ckpt")
+    x, mask = _batch([40, 25])
+    with torch.no_grad():
+        assert all(torch.equal(a, b) for a, b in zip(vae(x, mask, sample=False), loaded(x, mask, sample=False)))
+    assert meta["step"] == 7 and meta["mean"].tolist() == np.float32(mean).tolist()
+    assert np.array_equal(meta["std"], np.float32(std))
+
+
+def test_resume_continues_at_the_same_step(shard, tmp_path):
+    """10 steps, then resumed to 20 == 20 uninterrupted steps: bitwise on CPU with num_workers=0.
+
+    Dropout, the reparameterisation noise and the dataset's random crops all draw from the restored
+    torch RNG, the sampler continues at the saved epoch and batch, and AdamW's state is restored,
+    so every operation repeats exactly.
+    """
+    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=10, val_every=5, ckpt_every=10, log_every=5, seed=3)
+    train_vae(shard, tmp_path / "a", model=TINY, train=cfg, device="cpu", progress=False)
+    assert load_state(tmp_path / "a")["step"] == 10
+    with pytest.raises(FileExistsError):
+        train_vae(shard, tmp_path / "a", model=TINY, train=cfg, device="cpu", progress=False)
+    resumed = train_vae(shard, tmp_path / "a", model=TINY, train=replace(cfg, max_steps=20), device="cpu",
+                        resume=True, progress=False)
+    straight = train_vae(shard, tmp_path / "b", model=TINY, train=replace(cfg, max_steps=20), device="cpu",
+                         progress=False)
+    assert resumed["step"] == straight["step"] == 20
+    wa, meta = load_weights(tmp_path / "a", prefer="last")
+    wb, _ = load_weights(tmp_path / "b", prefer="last")
+    assert meta["step"] == 20
+    assert all(torch.equal(wa[k], wb[k]) for k in wb)
+    log_a, log_b = _log(tmp_path / "a"), _log(tmp_path / "b")
+    assert [r["step"] for r in log_a] == [r["step"] for r in log_b] == ["5", "10", "15", "20"]
+    for ra, rb in zip(log_a, log_b):
+        assert {k: v for k, v in ra.items() if k != "sec_per_step"} == {k: v for k, v in rb.items() if k != "sec_per_step"}
+    assert resumed == straight
+    with pytest.raises(ValueError, match="model config"):
+        train_vae(shard, tmp_path / "a", model=replace(TINY, d_model=64), train=replace(cfg, max_steps=30),
+                  device="cpu", resume=True, progress=False)
+
+
+def test_divergence_stops_and_keeps_the_last_good_checkpoint(shard, tmp_path):
+    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=4, val_every=4, ckpt_every=4, log_every=2)
+    train_vae(shard, tmp_path, model=TINY, train=cfg, device="cpu", progress=False)
+    good, _ = load_weights(tmp_path, prefer="last")
+    # lr = 1e30: AdamW moves every weight by ~1e30, the next forward pass overflows to inf/NaN.
+    with pytest.raises(TrainingDiverged, match="step"):
+        train_vae(shard, tmp_path, model=TINY, train=replace(cfg, lr=1e30, max_steps=50, ckpt_every=1000),
+                  device="cpu", resume=True, progress=False)
+    vae, meta = load_vae(tmp_path / "last")
+    assert meta["step"] == 4
+    assert all(torch.equal(v, good[k]) for k, v in vae.state_dict().items())
