@@ -1,0 +1,1 @@
+"""Exporters that turn generated joint positions into files other tools read (BVH)."""

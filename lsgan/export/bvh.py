@@ -1,0 +1,213 @@
+"""Export (T,22,3) joint positions as a BVH file that Blender, MotionBuilder and lsgan's reader load.
+
+Units: the file is in centimetres (``UNITS_PER_METRE`` = 100, the common BVH unit; import into Blender
+with scale 0.01). The hierarchy is the 22 SMPL joints (names from ``JOINT_NAMES``, parents from
+``PARENTS``) written depth first; the pelvis carries ``Xposition Yposition Zposition Zrotation Yrotation
+Xrotation``, every other joint ``Zrotation Yrotation Xrotation``, composed intrinsically (R = Rz @ Ry @ Rx,
+as :func:`lsgan.data.bvh.local_transforms` reads them). The head, feet and wrists end in an End Site.
+
+Rest pose: each bone points along its ``RAW_OFFSETS`` direction (legs and arms down, feet forward +z) with
+the input's mean bone length. The children of the two branching joints (pelvis: hips + spine; spine3:
+neck + collars) keep the input's mean relative layout instead, so that one rigid rotation of the branching
+joint can place all of them; that layout is turned to lie as close as possible to the raw directions.
+
+Rotations come from IK on the positions, so bones stay rigid: a branching joint's global orientation is
+the Kabsch fit of its rest child offsets onto the observed ones; a joint with one child gets the shortest
+arc (swing, no twist) from its rest bone direction to the observed one, in its parent's frame; leaves get
+the identity.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, RAW_OFFSETS
+
+UNITS_PER_METRE = 100.0
+ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
+JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")
+END_SITE_FRACTION = 0.5  # an End Site continues the leaf's bone by this fraction of its length
+
+_PARENTS = np.array(PARENTS)
+CHILDREN: tuple[tuple[int, ...], ...] = tuple(
+    tuple(int(c) for c in np.flatnonzero(_PARENTS == j)) for j in range(NUM_JOINTS)
+)
+
+
+def _depth_first(joint: int = 0) -> list[int]:
+    """Joint indices in the order the hierarchy is written (each joint before its children)."""
+    order = [joint]
+    for child in CHILDREN[joint]:
+        order.extend(_depth_first(child))
+    return order
+
+
+FILE_ORDER: tuple[int, ...] = tuple(_depth_first())
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def kabsch(rest: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """Rotations R (...,3,3) minimising sum_k |R rest_k - observed_k|^2, for (...,K,3) vector sets."""
+    h = np.einsum("...ki,...kj->...ij", observed, rest)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(u @ vt))
+    u = u.copy()
+    u[..., :, 2] *= np.where(d == 0, 1.0, d)[..., None]
+    return u @ vt
+
+
+def shortest_arc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotations (...,3,3) turning unit vectors a onto unit vectors b about a x b (180 degrees when opposite)."""
+    a, b = np.broadcast_arrays(_unit(a), _unit(b))
+    w = 1.0 + np.einsum("...i,...i->...", a, b)
+    xyz = np.cross(a, b)
+    opposite = w < 1e-9
+    if opposite.any():
+        alt = np.cross(a[opposite], np.array([1.0, 0.0, 0.0]))
+        alt = np.where(np.linalg.norm(alt, axis=-1, keepdims=True) < 1e-6,
+                       np.cross(a[opposite], np.array([0.0, 1.0, 0.0])), alt)
+        xyz[opposite] = _unit(alt)
+        w[opposite] = 0.0
+    quat = np.concatenate([xyz, w[..., None]], axis=-1)
+    return Rotation.from_quat(quat.reshape(-1, 4)).as_matrix().reshape(a.shape[:-1] + (3, 3))
+
+
+def rest_offsets(joints: np.ndarray) -> np.ndarray:
+    """Rest offsets (22,3) in metres fitted to a (T,22,3) motion (see the module docstring)."""
+    j = np.asarray(joints, dtype=np.float64)
+    bones = j[:, 1:] - j[:, _PARENTS[1:]]
+    lengths = np.concatenate([[0.0], np.linalg.norm(bones, axis=-1).mean(axis=0)])
+    offsets = RAW_OFFSETS * lengths[:, None]
+    for parent, children in enumerate(CHILDREN):
+        if len(children) < 2:
+            continue
+        kids = list(children)
+        observed = j[:, kids] - j[:, [parent]]  # (T,K,3)
+        local = np.einsum("tji,tkj->tki", kabsch(offsets[kids], observed), observed).mean(axis=0)
+        local = _unit(local) * lengths[kids, None]
+        offsets[kids] = local @ kabsch(local, offsets[kids]).T
+    return offsets
+
+
+def joint_rotations(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Local rotations (T,22,3,3) that pose the rest skeleton ``offsets`` like ``joints`` (hierarchical FK)."""
+    j = np.asarray(joints, dtype=np.float64)
+    t = j.shape[0]
+    eye = np.broadcast_to(np.eye(3), (t, 3, 3))
+    global_rot = np.empty((t, NUM_JOINTS, 3, 3))
+    local_rot = np.empty((t, NUM_JOINTS, 3, 3))
+    for k in range(NUM_JOINTS):
+        parent_rot = eye if PARENTS[k] < 0 else global_rot[:, PARENTS[k]]
+        kids = list(CHILDREN[k])
+        if len(kids) > 1:
+            g = kabsch(offsets[kids], j[:, kids] - j[:, [k]])
+            local = np.swapaxes(parent_rot, -1, -2) @ g
+        elif kids:
+            seen = np.einsum("tji,tj->ti", parent_rot, j[:, kids[0]] - j[:, k])
+            local = shortest_arc(offsets[kids[0]], seen)
+        else:
+            local = eye
+        local_rot[:, k] = local
+        global_rot[:, k] = parent_rot @ local
+    return local_rot
+
+
+def motion_channels(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The MOTION block (T, 6 + 3*21) in file order: root position in file units, then ZYX Euler degrees."""
+    j = np.asarray(joints, dtype=np.float64)
+    local = joint_rotations(j, offsets)[:, list(FILE_ORDER)]
+    with warnings.catch_warnings():  # gimbal lock is harmless: the angles still compose to the same matrix
+        warnings.simplefilter("ignore", UserWarning)
+        euler = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_euler("ZYX", degrees=True)
+    return np.concatenate([j[:, 0] * UNITS_PER_METRE, euler.reshape(j.shape[0], -1)], axis=1)
+
+
+def _hierarchy(offsets: np.ndarray) -> str:
+    """The HIERARCHY block for rest offsets (22,3) in metres."""
+    lines = ["HIERARCHY"]
+
+    def fmt(v: np.ndarray) -> str:
+        return " ".join(f"{x * UNITS_PER_METRE:.6f}" for x in v)
+
+    def write(k: int, depth: int) -> None:
+        pad = "  " * depth
+        keyword = "ROOT" if PARENTS[k] < 0 else "JOINT"
+        chans = ROOT_CHANNELS if PARENTS[k] < 0 else JOINT_CHANNELS
+        lines.extend([f"{pad}{keyword} {JOINT_NAMES[k]}", f"{pad}{{", f"{pad}  OFFSET {fmt(offsets[k])}",
+                      f"{pad}  CHANNELS {len(chans)} {' '.join(chans)}"])
+        for child in CHILDREN[k]:
+            write(child, depth + 1)
+        if not CHILDREN[k]:
+            lines.extend([f"{pad}  End Site", f"{pad}  {{",
+                          f"{pad}    OFFSET {fmt(offsets[k] * END_SITE_FRACTION)}", f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    write(0, 0)
+    return "\n".join(lines)
+
+
+def joints_to_bvh(joints: np.ndarray, *, fps: float = 20.0, offsets: np.ndarray | None = None) -> str:
+    """BVH text for joint positions (T,22,3) in metres; ``offsets`` (22,3, metres) overrides the fitted rest pose.
+
+    The positions are reproduced exactly when the input's bones are rigid (up to the 6 printed decimals);
+    otherwise the rigid BVH skeleton follows every bone's direction with its mean length.
+    """
+    j = np.asarray(joints, dtype=np.float64)
+    if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or j.shape[0] == 0:
+        raise ValueError(f"joints must be (T,{NUM_JOINTS},3) with T > 0, got {j.shape}")
+    if not np.isfinite(j).all():
+        raise ValueError("joints hold NaN or infinite values")
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    rest = rest_offsets(j) if offsets is None else np.asarray(offsets, dtype=np.float64)
+    if rest.shape != (NUM_JOINTS, 3):
+        raise ValueError(f"offsets must be ({NUM_JOINTS},3), got {rest.shape}")
+    motion = motion_channels(j, rest)
+    rows = np.char.mod("%.6f", motion)
+    body = "\n".join(" ".join(row) for row in rows)
+    return (f"{_hierarchy(rest)}\nMOTION\nFrames: {j.shape[0]}\nFrame Time: {1.0 / fps:.8f}\n{body}\n")
+
+
+def write_bvh(path: str | Path, joints: np.ndarray, *, fps: float = 20.0,
+              offsets: np.ndarray | None = None) -> Path:
+    """Write :func:`joints_to_bvh` to ``path`` atomically (a temporary file beside it, then os.replace)."""
+    path = Path(path)
+    text = joints_to_bvh(joints, fps=fps, offsets=offsets)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_motion_joints(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
+    """(name, joints (T,22,3)) pairs from a joints .npy, a features .npy (T,263), or a ``generate`` folder."""
+    from lsgan.data.clip import load_npy
+    from lsgan.data.features import recover_from_ric
+    from lsgan.data.skeleton import FEATURE_DIM
+
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob("*_joints.npy")) or sorted(path.glob("*.npy"))
+        if not files:
+            raise ValueError(f"{path}: no .npy motions in this folder")
+        return [item for f in files for item in load_motion_joints(f)]
+    array = load_npy(path)
+    if array.ndim == 3 and array.shape[1:] == (NUM_JOINTS, 3):
+        return [(path.stem, array.astype(np.float32))]
+    if array.ndim == 2 and array.shape[1] == FEATURE_DIM:
+        return [(path.stem, recover_from_ric(array.astype(np.float32)))]
+    raise ValueError(f"{path}: expected joints (T, 22, 3) or features (T, 263), got an array of shape {array.shape}")
