@@ -10,16 +10,14 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Iterable
-from pathlib import Path
 
 import numpy as np
 
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import ClipRecord, _Accumulator
 from lsgan.data.tokens import tokenize
+from lsgan.io import atomic_folder
 
 
 def _fmt_time(t: float) -> str:
@@ -38,10 +36,7 @@ def write_humanml3d_folder(
     provenance: dict | None = None,
 ) -> dict:
     """Write the folder atomically: built beside ``output`` and renamed into place when complete."""
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.", dir=output.parent))
-    try:
+    with atomic_folder(output) as tmp:
         for sub in ("new_joint_vecs", "new_joints", "texts"):
             (tmp / sub).mkdir()
         acc = _Accumulator()
@@ -68,16 +63,4 @@ def write_humanml3d_folder(
         (tmp / "all.txt").write_text("".join(f"{n}\n" for s in splits.values() for n in s))
         if provenance is not None:
             (tmp / "lsgan_provenance.json").write_text(json.dumps(provenance, indent=1, sort_keys=True))
-        old = None
-        if output.exists():
-            old = output.with_name(f".{output.name}.old")
-            if old.exists():
-                shutil.rmtree(old)
-            output.rename(old)
-        tmp.rename(output)
-        if old is not None:
-            shutil.rmtree(old)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return {"clips": n_clips, "frames": n_frames, "captions": n_caps}

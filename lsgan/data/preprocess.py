@@ -24,7 +24,8 @@ import numpy as np
 from lsgan import __version__
 from lsgan.data.clip import Caption, ClipError, RawClip, mirror_caption, swap_left_right
 from lsgan.data.features import joints_to_features
-from lsgan.data.shards import FORMAT_VERSION, ClipRecord, atomic_path, write_shard
+from lsgan.data.shards import FORMAT_VERSION, ClipRecord, write_shard
+from lsgan.io import atomic_path
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS, mirror_joints
 
 FORMATS = ("hdf5", "humanml3d")

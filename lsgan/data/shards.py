@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ import numpy as np
 from lsgan import __version__
 from lsgan.data.clip import Caption
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS
+from lsgan.io import atomic_path
 
 FORMAT = "lsgan-motion-shard"
 FORMAT_VERSION = 1
@@ -78,16 +78,6 @@ class _Accumulator:
         mean = self.s / self.n
         std = np.sqrt(np.maximum(self.ss / self.n - mean * mean, 0.0))
         return mean.astype(np.float32), group_std(std)
-
-
-def atomic_path(path: Path) -> tuple[int, str]:
-    """A temporary file beside ``path`` (same filesystem, so a rename is atomic), with the usual permissions."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
-    return fd, tmp
 
 
 def write_shard(

@@ -24,7 +24,7 @@ import h5py
 import numpy as np
 
 from lsgan import __version__
-from lsgan.data.shards import atomic_path
+from lsgan.io import atomic_path
 
 FORMAT = "lsgan-latent-cache"
 FORMAT_VERSION = 1

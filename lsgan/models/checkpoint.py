@@ -14,14 +14,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import torch
 from safetensors.torch import load_file, save_file
 
 from lsgan import __version__
+from lsgan.io import atomic_folder
 
 WEIGHTS, CONFIG, STATE = "model.safetensors", "config.json", "state.pt"
 
@@ -37,28 +36,14 @@ def save_checkpoint(
     state: dict | None = None,
 ) -> Path:
     """Write ``folder`` atomically. ``state`` (optional) holds tensors/plain values for resuming."""
-    folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
+    with atomic_folder(folder) as tmp:
         weights = {k: v.detach().contiguous().cpu() for k, v in unwrap(model).state_dict().items()}
         save_file(weights, tmp / WEIGHTS, metadata={"kind": kind, "lsgan_version": __version__})
         meta = {"kind": kind, "config": config, "step": int(step), "lsgan_version": __version__, "extra": extra or {}}
         (tmp / CONFIG).write_text(json.dumps(meta, indent=1, sort_keys=True))
         if state is not None:
             torch.save(state, tmp / STATE)
-        old = None
-        if folder.exists():
-            old = folder.with_name(f".{folder.name}.old")
-            shutil.rmtree(old, ignore_errors=True)
-            folder.rename(old)
-        tmp.rename(folder)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return folder
+    return Path(folder)
 
 
 def resolve(path: str | os.PathLike, prefer: str = "best") -> Path:

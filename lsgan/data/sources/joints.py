@@ -5,7 +5,6 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
 from lsgan.data.clip import ClipError, RawClip, load_npy
 from lsgan.data.skeleton import NUM_JOINTS
