@@ -4,7 +4,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -59,6 +58,7 @@ def test_generate_writes_motions_and_is_deterministic(run):
     assert "ms per motion" in first.stderr
     again = lsgan(*args, "-o", "out2", cwd=run)
     other = lsgan(*args[:-1], 4, "-o", "out3", cwd=run)
+    assert again.returncode == 0 and other.returncode == 0
     manifest = json.loads((run / "out1" / "manifest.json").read_text())
     assert len(manifest["motions"]) == 4 and manifest["seed"] == 3
     assert manifest["vae"]["sha256"] and manifest["gan"]["sha256"]
@@ -69,7 +69,6 @@ def test_generate_writes_motions_and_is_deterministic(run):
         np.testing.assert_array_equal(joints, np.load(run / "out2" / m["joints"]))
     first_joints = np.load(run / "out1" / manifest["motions"][0]["joints"])
     assert not np.array_equal(first_joints, np.load(run / "out3" / manifest["motions"][0]["joints"]))
-    assert other.returncode == 0
 
 
 def test_prompts_file_with_lengths(run):
