@@ -329,29 +329,36 @@ def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text
 
 @main.command(epilog="""\b
 Examples:
-  lsgan export --bvh out/000_a-person-walks-forward_joints.npy -o walk.bvh
-  lsgan export --bvh out/ -o bvh/                  # every motion of a generate folder
+  lsgan export --glb out/000_a-person-walks-forward_joints.npy -o walk.glb
+  lsgan export --glb out/ -o glb/                  # every motion of a generate folder
+  lsgan export --bvh out/ -o bvh/
   lsgan export --bvh motion_features.npy --fps 30 -o motion.bvh
 """)
 @click.argument("input", type=click.Path(exists=True))
-@click.option("--bvh", "as_bvh", is_flag=True, required=True, help="Write BVH (22-joint skeleton, centimetres, ZYX channels).")
+@click.option("--glb", "as_glb", is_flag=True, help="Animated glTF binary: named joint nodes, a visible skeleton, one animation.")
+@click.option("--bvh", "as_bvh", is_flag=True, help="BVH on the 22-joint skeleton (centimetres, ZYX channels).")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output file, or folder when INPUT holds several motions.")
-def export(input, as_bvh, fps, output) -> None:
-    """Export motions (joints .npy, features .npy or a generate folder) for other tools. GLB export is to come."""
+def export(input, as_glb, as_bvh, fps, output) -> None:
+    """Export motions (joints .npy, features .npy or a generate folder) for Blender, three.js and game engines."""
     from lsgan.data.clip import ClipError
     from lsgan.export.bvh import load_motion_joints, write_bvh
+    from lsgan.export.glb import write_glb
 
+    if as_glb == as_bvh:
+        raise click.UsageError("choose one format: --glb or --bvh")
+    ext, write = (".glb", write_glb) if as_glb else (".bvh", write_bvh)
     try:
         motions = load_motion_joints(input)
         out = Path(output)
-        if len(motions) == 1 and out.suffix.lower() == ".bvh":
-            paths = [write_bvh(out, motions[0][1], fps=fps)]
+        if len(motions) == 1 and out.suffix.lower() == ext:
+            paths = [write(out, motions[0][1], fps=fps)]
         else:
-            paths = [write_bvh(out / f"{name.removesuffix('_joints')}.bvh", j, fps=fps) for name, j in motions]
+            paths = [write(out / f"{name.removesuffix('_joints')}{ext}", j, fps=fps) for name, j in motions]
     except (ValueError, ClipError) as e:
         _fail(str(e))
-    click.echo(f"wrote {len(paths)} BVH file(s): {', '.join(str(p) for p in paths[:3])}{' ...' if len(paths) > 3 else ''}", err=True)
+    shown = ", ".join(str(p) for p in paths[:3]) + (" ..." if len(paths) > 3 else "")
+    click.echo(f"wrote {len(paths)} {ext[1:].upper()} file(s): {shown}", err=True)
 
 
 if __name__ == "__main__":

@@ -1,1 +1,1 @@
-"""Exporters that turn generated joint positions into files other tools read (BVH)."""
+"""Export motions for other tools: animated GLB (glb.py) and BVH (bvh.py)."""
