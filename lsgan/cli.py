@@ -333,21 +333,33 @@ Examples:
   lsgan export --glb out/ -o glb/                  # every motion of a generate folder
   lsgan export --bvh out/ -o bvh/
   lsgan export --bvh motion_features.npy --fps 30 -o motion.bvh
+  lsgan export --gif out/ -o previews/             # stick-figure previews, captions as titles
 """)
 @click.argument("input", type=click.Path(exists=True))
 @click.option("--glb", "as_glb", is_flag=True, help="Animated glTF binary: named joint nodes, a visible skeleton, one animation.")
 @click.option("--bvh", "as_bvh", is_flag=True, help="BVH on the 22-joint skeleton (centimetres, ZYX channels).")
+@click.option("--gif", "as_gif", is_flag=True, help="Stick-figure preview with ground grid, root path and caption.")
+@click.option("--title", help="--gif: the title (default: the prompt from a generate manifest, else the file name).")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output file, or folder when INPUT holds several motions.")
-def export(input, as_glb, as_bvh, fps, output) -> None:
+def export(input, as_glb, as_bvh, as_gif, title, fps, output) -> None:
     """Export motions (joints .npy, features .npy or a generate folder) for Blender, three.js and game engines."""
     from lsgan.data.clip import ClipError
     from lsgan.export.bvh import load_motion_joints, write_bvh
     from lsgan.export.glb import write_glb
+    from lsgan.export.preview import write_gif
 
-    if as_glb == as_bvh:
-        raise click.UsageError("choose one format: --glb or --bvh")
-    ext, write = (".glb", write_glb) if as_glb else (".bvh", write_bvh)
+    if as_glb + as_bvh + as_gif != 1:
+        raise click.UsageError("choose one format: --glb, --bvh or --gif")
+    if as_gif:
+        titles = _manifest_titles(Path(input))
+        ext = ".gif"
+
+        def write(path, joints, fps):
+            stem = path.stem
+            return write_gif(path, joints, fps=fps, title=title if title is not None else titles.get(stem, stem))
+    else:
+        ext, write = (".glb", write_glb) if as_glb else (".bvh", write_bvh)
     try:
         motions = load_motion_joints(input)
         out = Path(output)
@@ -359,6 +371,15 @@ def export(input, as_glb, as_bvh, fps, output) -> None:
         _fail(str(e))
     shown = ", ".join(str(p) for p in paths[:3]) + (" ..." if len(paths) > 3 else "")
     click.echo(f"wrote {len(paths)} {ext[1:].upper()} file(s): {shown}", err=True)
+
+
+def _manifest_titles(folder: Path) -> dict[str, str]:
+    """Output stem -> prompt (or action) from a generate folder's manifest.json."""
+    manifest = folder / "manifest.json" if folder.is_dir() else folder.parent / "manifest.json"
+    if not manifest.exists():
+        return {}
+    entries = json.loads(manifest.read_text()).get("motions", [])
+    return {e["joints"].removesuffix("_joints.npy"): e.get("text") or e.get("action") or "" for e in entries}
 
 
 if __name__ == "__main__":

@@ -1,0 +1,248 @@
+"""Stick-figure GIF preview of a (T,22,3) joint motion (metres, Y up, +z forward, SMPL joint order).
+
+Pillow only (no matplotlib, no ffmpeg). One fixed perspective camera per motion, placed at a 3/4 view
+(in front of the figure, to its right and above), looking at the centre of the motion's bounds over all
+frames, and zoomed so that every joint of every frame fits in the image. Each frame draws, back to front:
+a ground grid on y=0 (1 m spacing), the root's ground trajectory (the whole path, faint, and the part
+walked so far, stronger), the skeleton as lines along the five ``KINEMATIC_CHAIN`` chains (left side
+blue, right side red, spine dark grey; chains sorted far to near), the joints as small dots, the title at
+the top (Pillow's default font, word-wrapped to the image width) and a progress bar at the bottom (which
+also keeps consecutive frames distinct, so a GIF keeps exactly one frame per motion frame).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from lsgan.data.skeleton import KINEMATIC_CHAIN, NUM_JOINTS
+
+BACKGROUND = (255, 255, 255)
+GRID_COLOUR = (205, 205, 205)
+TRAJECTORY_COLOUR = (120, 200, 120)
+TRAJECTORY_DONE_COLOUR = (30, 140, 30)
+LEFT_COLOUR = (30, 90, 220)
+RIGHT_COLOUR = (220, 40, 40)
+SPINE_COLOUR = (60, 60, 60)
+JOINT_COLOUR = (0, 0, 0)
+TITLE_COLOUR = (0, 0, 0)
+PROGRESS_COLOUR = (150, 150, 150)
+
+# Chain index -> colour: KINEMATIC_CHAIN is (right leg, left leg, spine, right arm, left arm).
+CHAIN_COLOURS = (RIGHT_COLOUR, LEFT_COLOUR, SPINE_COLOUR, RIGHT_COLOUR, LEFT_COLOUR)
+
+AZIMUTH_DEG = 35.0  # camera direction from the centre, rotated from +z (the front) towards +x
+ELEVATION_DEG = 22.0
+MIN_SIZE = 64
+_PROGRESS_HEIGHT = 4
+
+
+def _check_joints(joints) -> np.ndarray:
+    j = np.asarray(joints)
+    if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or j.shape[0] < 1:
+        raise ValueError(f"joints must have shape (T, {NUM_JOINTS}, 3) with T >= 1, got {j.shape}")
+    if not np.issubdtype(j.dtype, np.number):
+        raise ValueError(f"joints must be numeric, got dtype {j.dtype}")
+    j = j.astype(np.float64)
+    if not np.isfinite(j).all():
+        raise ValueError("joints contain NaN or infinite values")
+    return j
+
+
+class _Camera:
+    """A pinhole camera at a 3/4 view framing ``joints`` (all frames), mapping world points to pixels."""
+
+    def __init__(self, joints: np.ndarray, width: int, top: int, bottom: int, margin: int):
+        pts = joints.reshape(-1, 3)
+        lo, hi = pts.min(0), pts.max(0)
+        lo[1], hi[1] = min(lo[1], 0.0), max(hi[1], 0.0)  # frame the floor under the figure too
+        centre = (lo + hi) / 2
+        radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.5)
+        az, el = np.radians(AZIMUTH_DEG), np.radians(ELEVATION_DEG)
+        back = np.array([np.sin(az) * np.cos(el), np.sin(el), np.cos(az) * np.cos(el)])  # centre -> eye
+        # Far enough that the grid (bounds + 1 m) stays well in front of the camera.
+        self.eye = centre + back * (3.0 * radius + 3.0)
+        fwd = -back
+        right = np.cross(fwd, [0.0, 1.0, 0.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, fwd)
+        self.rot = np.stack([right, up, fwd])  # rows: camera axes in world coordinates
+        # Fit the projected joints of all frames (and their floor shadows) into the drawing area.
+        shadow = pts * np.array([1.0, 0.0, 1.0])
+        uv = self._project_normalised(np.concatenate([pts, shadow]))
+        uv_lo, uv_hi = uv.min(0), uv.max(0)
+        span = np.maximum(uv_hi - uv_lo, 1e-6)
+        avail_w, avail_h = width - 2 * margin, (bottom - top) - 2 * margin
+        self.scale = float(min(avail_w / span[0], avail_h / span[1]))
+        uv_mid = (uv_lo + uv_hi) / 2
+        self.offset = np.array([width / 2, (top + bottom) / 2]) - self.scale * uv_mid * np.array([1.0, -1.0])
+
+    def depth(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points) - self.eye) @ self.rot[2]
+
+    def _project_normalised(self, points: np.ndarray) -> np.ndarray:
+        cam = (np.asarray(points, dtype=np.float64) - self.eye) @ self.rot.T
+        z = np.maximum(cam[..., 2], 1e-3)
+        return cam[..., :2] / z[..., None]
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """World points (..., 3) -> pixel coordinates (..., 2) (x right, y down)."""
+        uv = self._project_normalised(points)
+        return uv * self.scale * np.array([1.0, -1.0]) + self.offset
+
+
+def _wrap(text: str, font, draw: ImageDraw.ImageDraw, max_width: int) -> list[str]:
+    """Greedy word wrap of ``text`` to lines at most ``max_width`` pixels wide (long words are split)."""
+    def width(s: str) -> float:
+        return draw.textlength(s, font=font)
+
+    lines: list[str] = []
+    for paragraph in text.splitlines() or [""]:
+        line = ""
+        for word in paragraph.split():
+            while width(word) > max_width and len(word) > 1:  # a word wider than the image: split it
+                cut = len(word) - 1
+                while cut > 1 and width(word[:cut]) > max_width:
+                    cut -= 1
+                if line:
+                    lines.append(line)
+                    line = ""
+                lines.append(word[:cut])
+                word = word[cut:]
+            candidate = f"{line} {word}" if line else word
+            if line and width(candidate) > max_width:
+                lines.append(line)
+                line = word
+            else:
+                line = candidate
+        if line:
+            lines.append(line)
+    return lines
+
+
+def _draw_title(draw: ImageDraw.ImageDraw, title: str, size: int) -> int:
+    """Draw the wrapped title at the top; return the y below it (0 if no title)."""
+    if not title.strip():
+        return 0
+    font = ImageFont.load_default()
+    pad = 6
+    lines = _wrap(title.strip(), font, draw, size - 2 * pad)
+    line_h = int(np.ceil(draw.textbbox((0, 0), "Ag", font=font)[3])) + 3
+    max_lines = max(1, (size // 3) // line_h)  # never let the title eat more than a third of the image
+    if len(lines) > max_lines:
+        lines = lines[:max_lines]
+        lines[-1] = lines[-1].rstrip(".") + "..."
+    y = pad
+    for line in lines:
+        x = (size - draw.textlength(line, font=font)) / 2
+        draw.text((x, y), line, fill=TITLE_COLOUR, font=font)
+        y += line_h
+    return y + pad
+
+
+def _grid_segments(joints: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Lines of the y=0 grid (1 m spacing) covering the motion's ground footprint plus a 1 m border."""
+    xz = joints[..., [0, 2]].reshape(-1, 2)
+    x0, z0 = np.floor(xz.min(0)) - 1
+    x1, z1 = np.ceil(xz.max(0)) + 1
+    segs = []
+    for x in np.arange(x0, x1 + 0.5):
+        segs.append((np.array([x, 0.0, z0]), np.array([x, 0.0, z1])))
+    for z in np.arange(z0, z1 + 0.5):
+        segs.append((np.array([x0, 0.0, z]), np.array([x1, 0.0, z])))
+    return segs
+
+
+def _clip_segment(cam: _Camera, a: np.ndarray, b: np.ndarray, near: float = 0.05):
+    """Clip a world segment to the part in front of the camera's near plane; None if wholly behind."""
+    da, db = float(cam.depth(a)), float(cam.depth(b))
+    if da < near and db < near:
+        return None
+    if da < near:
+        a = a + (b - a) * (near - da) / (db - da)
+    elif db < near:
+        b = b + (a - b) * (near - db) / (da - db)
+    return a, b
+
+
+def render_frames(joints, *, title: str = "", size: int = 480) -> list[Image.Image]:
+    """Render every frame of ``joints`` (T,22,3) as a ``size`` x ``size`` RGB stick-figure image.
+
+    Raises ValueError on a wrong shape, non-finite values or a size below 64 pixels.
+    """
+    j = _check_joints(joints)
+    size = int(size)
+    if size < MIN_SIZE:
+        raise ValueError(f"size must be at least {MIN_SIZE}, got {size}")
+    T = j.shape[0]
+
+    # The static layer: background, title, grid, full trajectory (drawn once, copied per frame).
+    base = Image.new("RGB", (size, size), BACKGROUND)
+    draw = ImageDraw.Draw(base)
+    title_bottom = _draw_title(draw, str(title), size)
+    margin = max(8, size // 24)
+    cam = _Camera(j, size, title_bottom, size - _PROGRESS_HEIGHT - 2, margin)
+    grid_w = max(1, size // 480)
+    for a, b in _grid_segments(j):
+        seg = _clip_segment(cam, a, b)
+        if seg is not None:
+            p = cam.project(np.stack(seg))
+            draw.line([tuple(p[0]), tuple(p[1])], fill=GRID_COLOUR, width=grid_w)
+    traj = j[:, 0, :] * np.array([1.0, 0.0, 1.0])
+    traj_px = [tuple(p) for p in cam.project(traj)]
+    if T > 1:
+        draw.line(traj_px, fill=TRAJECTORY_COLOUR, width=max(1, size // 240), joint="curve")
+    # Redraw the title on top in case the grid ran under it.
+    if title_bottom:
+        draw.rectangle([0, 0, size, title_bottom - 1], fill=BACKGROUND)
+        _draw_title(draw, str(title), size)
+
+    bone_w = max(2, round(size / 120))
+    dot_r = max(1.5, size / 200)
+    px = cam.project(j)  # (T,22,2)
+    depth = cam.depth(j)  # (T,22)
+    frames = []
+    for t in range(T):
+        im = base.copy()
+        d = ImageDraw.Draw(im)
+        if t > 0:
+            d.line(traj_px[: t + 1], fill=TRAJECTORY_DONE_COLOUR, width=max(2, size // 160), joint="curve")
+        order = sorted(range(len(KINEMATIC_CHAIN)), key=lambda c: -depth[t, list(KINEMATIC_CHAIN[c])].mean())
+        for c in order:
+            chain = KINEMATIC_CHAIN[c]
+            d.line([tuple(px[t, k]) for k in chain], fill=CHAIN_COLOURS[c], width=bone_w, joint="curve")
+        for k in np.argsort(-depth[t]):
+            x, y = px[t, k]
+            d.ellipse([x - dot_r, y - dot_r, x + dot_r, y + dot_r], fill=JOINT_COLOUR)
+        bar = size * (t + 1) / T
+        d.rectangle([0, size - _PROGRESS_HEIGHT, bar, size - 1], fill=PROGRESS_COLOUR)
+        frames.append(im)
+    return frames
+
+
+def write_gif(path, joints, *, title: str = "", fps: float = 20.0, size: int = 480) -> Path:
+    """Render ``joints`` and write a looping GIF to ``path`` atomically; return the path.
+
+    Each frame lasts 1000/fps ms (GIF stores hundredths of a second, so it is rounded to 10 ms).
+    """
+    fps = float(fps)
+    if not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    frames = render_frames(joints, title=title, size=size)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            frames[0].save(
+                f, format="GIF", save_all=True, append_images=frames[1:],
+                duration=1000.0 / fps, loop=0, disposal=1,
+            )
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
