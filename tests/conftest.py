@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
@@ -32,3 +33,13 @@ def bandai_dir() -> Path:
 @pytest.fixture(scope="session")
 def cmu_dir() -> Path:
     return _need(SHARED / "data" / "cmu")
+
+
+@pytest.fixture()
+def one_thread():
+    """Run torch on one thread: tiny models gain nothing from intra-op threads, and on a busy 2-core
+    machine two threads can spin-wait each other and run many times slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

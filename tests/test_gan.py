@@ -25,17 +25,11 @@ from lsgan.models.gan import (
 from lsgan.train.common import TrainingDiverged
 from lsgan.train.gan import GANTrainConfig, train_gan
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 Z, D = 16, 8  # toy latent and text widths
 SMALL = dict(noise_dim=8, hidden_dim=64, latent_dim=Z, cond_dim=D)
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks run fastest (and steadiest on a shared machine) on one thread."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def toy_cache(path: Path, *, k: int = 3, per: int = 100, actions: bool = False, seed: int = 0,

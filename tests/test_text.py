@@ -13,6 +13,8 @@ from lsgan.models.text import (
     load_text_encoder,
 )
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 CAPTIONS = [
     "a person walks forward",
     "someone is walking ahead",
@@ -22,14 +24,6 @@ CAPTIONS = [
     "",
 ]
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny batches run fastest on one thread; on a busy 2-core box two threads can be 100x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

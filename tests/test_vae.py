@@ -16,6 +16,8 @@ from lsgan.models.vae import MotionVAE, VAEConfig, load_vae, vae_loss
 from lsgan.train.common import TrainingDiverged
 from lsgan.train.vae import VAETrainConfig, train_vae
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 TINY = VAEConfig(d_model=32, num_layers=3, num_heads=4, ff_size=64, latent_dim=32, dropout=0.1, max_len=256)
 
 
@@ -52,14 +54,6 @@ def _walk(T: int, speed: float, freq: float, swing: float, turn: float) -> np.nd
         joints[:, j] = joints[:, p] + world[:, p] @ TARGET_OFFSETS[j].astype(np.float64)
     return joints
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models gain nothing from intra-op threads, and on a busy machine threads spin-wait each other."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

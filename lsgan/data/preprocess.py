@@ -25,7 +25,7 @@ from lsgan import __version__
 from lsgan.data.clip import Caption, ClipError, RawClip, mirror_caption, swap_left_right
 from lsgan.data.features import joints_to_features
 from lsgan.data.shards import FORMAT_VERSION, ClipRecord, write_shard
-from lsgan.io import atomic_path
+from lsgan.io import atomic_file
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS, mirror_joints
 
 FORMATS = ("hdf5", "humanml3d")
@@ -187,15 +187,8 @@ def _save_chunk(path: Path, result: dict) -> None:
         "skips": result["skips"],
         "inputs": result["inputs"],
     }
-    fd, tmp = atomic_path(path)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(path) as f:
+        np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
 
 
 def _load_chunk_meta(path: Path) -> dict:
@@ -350,10 +343,8 @@ def _write_report(path: Path, result: PreprocessResult, source) -> None:
         "captions": result.captions,
         "skipped": [dataclasses.asdict(s) for s in result.skipped],
     }
-    fd, tmp = atomic_path(path)
-    with os.fdopen(fd, "w") as f:
+    with atomic_file(path, "w") as f:
         json.dump(body, f, indent=1)
-    os.replace(tmp, path)
 
 
 def print_skips(result: PreprocessResult, limit: int = 10, stream=sys.stderr) -> None:

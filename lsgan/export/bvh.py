@@ -19,7 +19,6 @@ the identity.
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, RAW_OFFSETS
+from lsgan.io import atomic_file
 
 UNITS_PER_METRE = 100.0
 ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
@@ -181,15 +181,8 @@ def write_bvh(path: str | Path, joints: np.ndarray, *, fps: float = 20.0,
     """Write :func:`joints_to_bvh` to ``path`` atomically (a temporary file beside it, then os.replace)."""
     path = Path(path)
     text = joints_to_bvh(joints, fps=fps, offsets=offsets)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
     return path
 
 

@@ -12,9 +12,7 @@ x,y,z,w quaternions) and a translation channel for the pelvis. glTF's convention
 from __future__ import annotations
 
 import json
-import os
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from lsgan.export.bvh import CHILDREN, joint_rotations, rest_offsets
+from lsgan.io import atomic_file
 
 GLB_MAGIC = 0x46546C67  # b"glTF" little endian
 CHUNK_JSON = 0x4E4F534A  # b"JSON"
@@ -204,13 +203,6 @@ def write_glb(path: str | Path, joints: np.ndarray, *, fps: float = 20.0, name: 
     """Write :func:`joints_to_glb` to ``path`` atomically (a temporary file beside it, then os.replace)."""
     path = Path(path)
     data = joints_to_glb(joints, fps=fps, name=name or path.stem)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as fh:
+        fh.write(data)
     return path

@@ -11,14 +11,13 @@ also keeps consecutive frames distinct, so a GIF keeps exactly one frame per mot
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lsgan.data.skeleton import KINEMATIC_CHAIN, NUM_JOINTS
+from lsgan.io import atomic_file
 
 BACKGROUND = (255, 255, 255)
 GRID_COLOUR = (205, 205, 205)
@@ -233,16 +232,9 @@ def write_gif(path, joints, *, title: str = "", fps: float = 20.0, size: int = 4
         raise ValueError(f"fps must be positive, got {fps}")
     frames = render_frames(joints, title=title, size=size)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            frames[0].save(
-                f, format="GIF", save_all=True, append_images=frames[1:],
-                duration=1000.0 / fps, loop=0, disposal=1,
-            )
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as f:
+        frames[0].save(
+            f, format="GIF", save_all=True, append_images=frames[1:],
+            duration=1000.0 / fps, loop=0, disposal=1,
+        )
     return path
