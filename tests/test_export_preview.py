@@ -1,5 +1,9 @@
-"""Tests of the stick-figure GIF preview (lsgan.export.preview)."""
+"""Tests of the stick-figure GIF and MP4 previews (lsgan.export.preview)."""
 from __future__ import annotations
+
+import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -8,7 +12,15 @@ PIL = pytest.importorskip("PIL")
 from PIL import Image  # noqa: E402
 
 from lsgan.data.synthetic import generate  # noqa: E402
-from lsgan.export.preview import LEFT_COLOUR, RIGHT_COLOUR, render_frames, write_gif  # noqa: E402
+from lsgan.export import preview  # noqa: E402
+from lsgan.export.preview import (  # noqa: E402
+    LEFT_COLOUR,
+    RIGHT_COLOUR,
+    EncodeError,
+    render_frames,
+    write_gif,
+    write_mp4,
+)
 
 SIZE = 160
 
@@ -102,14 +114,6 @@ def test_nan_raises(joints, tmp_path):
 
 
 def test_export_command_titles_previews_with_the_manifest_prompts(tmp_path):
-    import json
-    import subprocess
-    import sys
-
-    from PIL import Image
-
-    from lsgan.data.synthetic import generate
-
     folder = tmp_path / "gen"
     folder.mkdir()
     np.save(folder / "000_wave_joints.npy", generate(1, seed=0)[0].joints[:20])
@@ -126,3 +130,111 @@ def test_export_command_titles_previews_with_the_manifest_prompts(tmp_path):
         top_t = np.asarray(titled.convert("RGB"))[:20]
         top_p = np.asarray(plain.convert("RGB"))[:20]
         assert (top_t < 100).any() and not (top_p < 100).any()  # the prompt is drawn; an empty title is not
+
+
+def _read_mp4(path) -> tuple[dict, list[np.ndarray]]:
+    """The metadata ffmpeg reports for ``path`` and its decoded RGB frames."""
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    w, h = meta["size"]
+    return meta, [np.frombuffer(b, np.uint8).reshape(h, w, 3) for b in reader]
+
+
+def test_write_mp4_is_h264_with_every_frame_in_order(tmp_path, joints):
+    title = "a person walks"
+    out = write_mp4(tmp_path / "sub" / "m.mp4", joints, title=title, fps=29.97, size=SIZE)
+    assert out == tmp_path / "sub" / "m.mp4" and out.is_file()
+    assert [p.name for p in out.parent.iterdir()] == ["m.mp4"]  # no temporary file left behind
+    meta, decoded = _read_mp4(out)
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    assert meta["size"] == (SIZE, SIZE) and meta["fps"] == pytest.approx(29.97)
+    assert len(decoded) == len(joints)
+    rendered = [np.asarray(im).astype(int) for im in render_frames(joints, title=title, size=SIZE)]
+    for t in (0, len(joints) // 2, len(joints) - 1):
+        diffs = [np.abs(decoded[t] - r).mean() for r in rendered]
+        assert diffs[t] < 3  # lossy, but close to the frame it encodes ...
+        assert int(np.argmin(diffs)) == t  # ... and closer to it than to any other frame
+        assert (decoded[t] < 100).all(-1).sum() > 50  # the joints and the title are there, not a blank frame
+
+
+def test_mp4_odd_size_is_rounded_up_to_even(tmp_path, joints):
+    meta, decoded = _read_mp4(write_mp4(tmp_path / "m.mp4", joints[:2], size=65))
+    assert meta["size"] == (66, 66) and len(decoded) == 2
+
+
+def test_mp4_bad_input_raises_before_writing(tmp_path, joints):
+    bad = joints.copy()
+    bad[3, 5, 1] = np.nan
+    for args, kwargs in [((bad,), {}), ((joints[:, :21],), {}), ((joints,), {"fps": 0}), ((joints,), {"size": 32})]:
+        with pytest.raises(ValueError):
+            write_mp4(tmp_path / "x.mp4", *args, **kwargs)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture
+def old_target(tmp_path):
+    target = tmp_path / "m.mp4"
+    target.write_bytes(b"the previous video")
+    return target
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="the stand-in ffmpeg is a shell script")
+def test_failed_encode_keeps_the_target_and_leaves_no_partial_file(tmp_path, joints, old_target, monkeypatch):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    fake = tmp_path / "bin" / "ffmpeg"
+    fake.parent.mkdir()
+    fake.write_text('#!/bin/sh\nfor last; do :; done\necho partial > "$last"\necho "no such encoder" >&2\nexit 1\n')
+    fake.chmod(0o755)
+    monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", lambda: str(fake))
+    with pytest.raises(EncodeError, match="no such encoder"):
+        write_mp4(old_target, joints, size=64)
+    assert old_target.read_bytes() == b"the previous video"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bin", "m.mp4"]
+
+
+def test_interrupted_render_stops_ffmpeg_and_leaves_no_partial_file(tmp_path, joints, old_target, monkeypatch):
+    real = preview.iter_frames
+
+    def failing(*args, **kwargs):
+        frames = real(*args, **kwargs)
+        yield from (next(frames) for _ in range(3))
+        raise KeyboardInterrupt
+
+    started = []
+    popen = subprocess.Popen
+
+    def recording_popen(*args, **kwargs):
+        started.append(popen(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(preview, "iter_frames", failing)
+    monkeypatch.setattr(subprocess, "Popen", recording_popen)
+    with pytest.raises(KeyboardInterrupt):
+        write_mp4(old_target, joints, size=64)
+    assert len(started) == 1 and started[0].poll() is not None  # ffmpeg was started, and is gone
+    assert old_target.read_bytes() == b"the previous video"
+    assert [p.name for p in tmp_path.iterdir()] == ["m.mp4"]
+
+
+def test_export_command_writes_mp4_previews(tmp_path):
+    folder = tmp_path / "gen"
+    folder.mkdir()
+    np.save(folder / "000_wave_joints.npy", generate(1, seed=0)[0].joints[:20])
+    manifest = {"motions": [{"joints": "000_wave_joints.npy", "text": "a man waves"}]}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+
+    def export(*args):
+        cmd = [sys.executable, "-m", "lsgan.cli", "export", *map(str, args)]
+        return subprocess.run(cmd, capture_output=True, text=True)
+
+    out = export("--mp4", folder, "-o", tmp_path / "p")
+    assert out.returncode == 0, out.stderr
+    meta, decoded = _read_mp4(tmp_path / "p" / "000_wave.mp4")
+    assert meta["codec"] == "h264" and meta["fps"] == 20 and len(decoded) == 20
+    assert (decoded[0][:20] < 100).any()  # the prompt is drawn as the title
+    single = export("--mp4", folder / "000_wave_joints.npy", "--fps", 30, "-o", tmp_path / "w.mp4")
+    assert single.returncode == 0, single.stderr
+    assert _read_mp4(tmp_path / "w.mp4")[0]["fps"] == 30
+    both = export("--mp4", "--gif", folder, "-o", tmp_path / "x")
+    assert both.returncode != 0 and "--mp4" in both.stderr

@@ -1,23 +1,30 @@
-"""Stick-figure GIF preview of a (T,22,3) joint motion (metres, Y up, +z forward, SMPL joint order).
+"""Stick-figure GIF and MP4 previews of a (T,22,3) joint motion (metres, Y up, +z forward, SMPL joint order).
 
-Pillow only (no matplotlib, no ffmpeg). One fixed perspective camera per motion, placed at a 3/4 view
-(in front of the figure, to its right and above), looking at the centre of the motion's bounds over all
-frames, and zoomed so that every joint of every frame fits in the image. Each frame draws, back to front:
-a ground grid on y=0 (1 m spacing), the root's ground trajectory (the whole path, faint, and the part
-walked so far, stronger), the skeleton as lines along the five ``KINEMATIC_CHAIN`` chains (left side
-blue, right side red, spine dark grey; chains sorted far to near), the joints as small dots, the title at
-the top (Pillow's default font, word-wrapped to the image width) and a progress bar at the bottom (which
-also keeps consecutive frames distinct, so a GIF keeps exactly one frame per motion frame).
+Frames are drawn with Pillow (no matplotlib); GIFs are written by Pillow, MP4s (H.264) by the ffmpeg binary
+that ships inside the ``imageio-ffmpeg`` wheel, so no system ffmpeg is needed. One fixed perspective camera
+per motion, placed at a 3/4 view (in front of the figure, to its right and above), looking at the centre of
+the motion's bounds over all frames, and zoomed so that every joint of every frame fits in the image. Each
+frame draws, back to front: a ground grid on y=0 (1 m spacing), the root's ground trajectory (the whole
+path, faint, and the part walked so far, stronger), the skeleton as lines along the five ``KINEMATIC_CHAIN``
+chains (left side blue, right side red, spine dark grey; chains sorted far to near), the joints as small
+dots, the title at the top (Pillow's default font, word-wrapped to the image width) and a progress bar at
+the bottom (which also keeps consecutive frames distinct, so a GIF keeps exactly one frame per motion
+frame). Both file formats take the same frames from ``iter_frames``.
 """
 from __future__ import annotations
 
+import os
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lsgan.data.skeleton import KINEMATIC_CHAIN, NUM_JOINTS
-from lsgan.io import atomic_file
+from lsgan.io import atomic_file, atomic_path
 
 BACKGROUND = (255, 255, 255)
 GRID_COLOUR = (205, 205, 205)
@@ -167,10 +174,11 @@ def _clip_segment(cam: _Camera, a: np.ndarray, b: np.ndarray, near: float = 0.05
     return a, b
 
 
-def render_frames(joints, *, title: str = "", size: int = 480) -> list[Image.Image]:
-    """Render every frame of ``joints`` (T,22,3) as a ``size`` x ``size`` RGB stick-figure image.
+def iter_frames(joints, *, title: str = "", size: int = 480) -> Iterator[Image.Image]:
+    """The frames of ``joints`` (T,22,3) as ``size`` x ``size`` RGB stick-figure images, rendered lazily.
 
-    Raises ValueError on a wrong shape, non-finite values or a size below 64 pixels.
+    The arguments are checked at once (ValueError on a wrong shape, non-finite values or a size below 64
+    pixels); each frame is drawn only when the iterator reaches it, so an encoder can consume them as they come.
     """
     j = _check_joints(joints)
     size = int(size)
@@ -203,8 +211,8 @@ def render_frames(joints, *, title: str = "", size: int = 480) -> list[Image.Ima
     dot_r = max(1.5, size / 200)
     px = cam.project(j)  # (T,22,2)
     depth = cam.depth(j)  # (T,22)
-    frames = []
-    for t in range(T):
+
+    def frame(t: int) -> Image.Image:
         im = base.copy()
         d = ImageDraw.Draw(im)
         if t > 0:
@@ -218,8 +226,21 @@ def render_frames(joints, *, title: str = "", size: int = 480) -> list[Image.Ima
             d.ellipse([x - dot_r, y - dot_r, x + dot_r, y + dot_r], fill=JOINT_COLOUR)
         bar = size * (t + 1) / T
         d.rectangle([0, size - _PROGRESS_HEIGHT, bar, size - 1], fill=PROGRESS_COLOUR)
-        frames.append(im)
-    return frames
+        return im
+
+    return map(frame, range(T))
+
+
+def render_frames(joints, *, title: str = "", size: int = 480) -> list[Image.Image]:
+    """Every frame of ``joints`` (T,22,3) as a ``size`` x ``size`` RGB stick-figure image (see ``iter_frames``)."""
+    return list(iter_frames(joints, title=title, size=size))
+
+
+def _check_fps(fps) -> float:
+    fps = float(fps)
+    if not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    return fps
 
 
 def write_gif(path, joints, *, title: str = "", fps: float = 20.0, size: int = 480) -> Path:
@@ -227,9 +248,7 @@ def write_gif(path, joints, *, title: str = "", fps: float = 20.0, size: int = 4
 
     Each frame lasts 1000/fps ms (GIF stores hundredths of a second, so it is rounded to 10 ms).
     """
-    fps = float(fps)
-    if not np.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    fps = _check_fps(fps)
     frames = render_frames(joints, title=title, size=size)
     path = Path(path)
     with atomic_file(path) as f:
@@ -237,4 +256,64 @@ def write_gif(path, joints, *, title: str = "", fps: float = 20.0, size: int = 4
             f, format="GIF", save_all=True, append_images=frames[1:],
             duration=1000.0 / fps, loop=0, disposal=1,
         )
+    return path
+
+
+class EncodeError(RuntimeError):
+    """ffmpeg could not be found or failed to encode a video."""
+
+
+# H.264 as browsers and QuickTime play it: 4:2:0 chroma (yuv420p), and the index at the front of the file
+# so that playback can start before the download ends.
+_H264_ARGS = ("-c:v", "libx264", "-preset", "medium", "-tune", "animation", "-crf", "20",
+              "-pix_fmt", "yuv420p", "-movflags", "+faststart")
+
+
+def write_mp4(path, joints, *, title: str = "", fps: float = 20.0, size: int = 480) -> Path:
+    """Render ``joints`` and write an H.264 MP4 to ``path`` atomically; return the path.
+
+    Encoded by the ffmpeg binary inside the imageio-ffmpeg wheel (no system ffmpeg needed), into a temporary
+    file beside ``path`` that replaces it only once ffmpeg succeeded. yuv420p needs even dimensions, so an odd
+    ``size`` is rounded up by one pixel. A fractional ``fps`` is kept exact (29.97 is stored as 2997/100).
+    Raises ValueError on bad arguments and EncodeError when ffmpeg fails; ``path`` is then left as it was.
+    """
+    import imageio_ffmpeg  # here, so that the other exports work without it
+
+    fps = _check_fps(fps)
+    size = int(size)
+    size += size % 2
+    frames = iter_frames(joints, title=title, size=size)
+    try:
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+    except RuntimeError as e:
+        raise EncodeError(str(e)) from e
+    path = Path(path)
+    fd, tmp = atomic_path(path)
+    os.close(fd)
+    rate = Fraction(fps).limit_denominator()
+    cmd = [exe, "-y", "-v", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{size}x{size}",
+           "-framerate", str(rate), "-i", "-", "-an", *_H264_ARGS, "-f", "mp4", tmp]
+    try:
+        with tempfile.TemporaryFile() as log:
+            proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
+            try:
+                try:
+                    for im in frames:
+                        proc.stdin.write(im.tobytes())
+                    proc.stdin.close()
+                except BrokenPipeError:
+                    pass  # ffmpeg stopped reading: its exit code and log say why
+                code = proc.wait()
+            finally:
+                if proc.poll() is None:  # rendering failed or was interrupted: stop ffmpeg
+                    proc.kill()
+                    proc.wait()
+            if code != 0:
+                log.seek(0)
+                message = log.read().decode(errors="replace").strip()[-2000:]
+                raise EncodeError(f"ffmpeg failed (exit code {code}) writing {path}: {message}")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return path
