@@ -331,55 +331,54 @@ def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text
 Examples:
   lsgan export --glb out/000_a-person-walks-forward_joints.npy -o walk.glb
   lsgan export --glb out/ -o glb/                  # every motion of a generate folder
+  lsgan export --glb out/ --body-model ~/models -o glb/   # SMPL body (skinned) + fitted .npz per motion
+  lsgan export --glb walk.npy --body-model ~/models/smplx/SMPLX_MALE.npz --gender male -o walk.glb
   lsgan export --bvh out/ -o bvh/
   lsgan export --bvh motion_features.npy --fps 30 -o motion.bvh
   lsgan export --gif out/ -o previews/             # stick-figure previews, captions as titles
+  lsgan export --mp4 out/ -o previews/             # the same as H.264 videos (ffmpeg comes with the package)
+  lsgan export --mp4 --title "a wave" out/000_wave_joints.npy --fps 30 -o wave.mp4
 """)
 @click.argument("input", type=click.Path(exists=True))
 @click.option("--glb", "as_glb", is_flag=True, help="Animated glTF binary: named joint nodes, a visible skeleton, one animation.")
 @click.option("--bvh", "as_bvh", is_flag=True, help="BVH on the 22-joint skeleton (centimetres, ZYX channels).")
 @click.option("--gif", "as_gif", is_flag=True, help="Stick-figure preview with ground grid, root path and caption.")
-@click.option("--title", help="--gif: the title (default: the prompt from a generate manifest, else the file name).")
+@click.option("--mp4", "as_mp4", is_flag=True, help="The --gif preview as an H.264 MP4 (plays in browsers and QuickTime).")
+@click.option("--title", help="--gif/--mp4: the title (default: the prompt from a generate manifest, else the file name).")
+@click.option("--body-model", type=click.Path(), help="--glb: fit this SMPL/SMPL-H/SMPL-X model (file or folder, "
+              "smplx layout) and write one skinned body mesh, plus the fitted poses/trans/betas as .npz.")
+@click.option("--gender", default="neutral", show_default=True, type=click.Choice(["neutral", "male", "female"]),
+              help="--body-model: which model file to use.")
+@click.option("--model-type", default="auto", show_default=True, type=click.Choice(["auto", "smpl", "smplh", "smplx"]),
+              help="--body-model: the model family (auto: the first found of SMPL, SMPL-H, SMPL-X).")
+@click.option("--fit-iterations", default=100, show_default=True, type=click.IntRange(1),
+              help="--body-model: L-BFGS iterations of the batched pose refinement.")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output file, or folder when INPUT holds several motions.")
-def export(input, as_glb, as_bvh, as_gif, title, fps, output) -> None:
+def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, model_type, fit_iterations, fps,
+           output) -> None:
     """Export motions (joints .npy, features .npy or a generate folder) for Blender, three.js and game engines."""
+    from lsgan.data.body_model import BodyModelError
     from lsgan.data.clip import ClipError
-    from lsgan.export.bvh import load_motion_joints, write_bvh
-    from lsgan.export.glb import write_glb
-    from lsgan.export.preview import write_gif
+    from lsgan.export.motions import export_motions
+    from lsgan.export.preview import EncodeError
 
-    if as_glb + as_bvh + as_gif != 1:
-        raise click.UsageError("choose one format: --glb, --bvh or --gif")
-    if as_gif:
-        titles = _manifest_titles(Path(input))
-        ext = ".gif"
-
-        def write(path, joints, fps):
-            stem = path.stem
-            return write_gif(path, joints, fps=fps, title=title if title is not None else titles.get(stem, stem))
-    else:
-        ext, write = (".glb", write_glb) if as_glb else (".bvh", write_bvh)
+    if as_glb + as_bvh + as_gif + as_mp4 != 1:
+        raise click.UsageError("choose one format: --glb, --bvh, --gif or --mp4")
+    if body_model is not None and not as_glb:
+        raise click.UsageError("--body-model goes with --glb")
+    fmt = "glb" if as_glb else "bvh" if as_bvh else "gif" if as_gif else "mp4"
     try:
-        motions = load_motion_joints(input)
-        out = Path(output)
-        if len(motions) == 1 and out.suffix.lower() == ext:
-            paths = [write(out, motions[0][1], fps=fps)]
-        else:
-            paths = [write(out / f"{name.removesuffix('_joints')}{ext}", j, fps=fps) for name, j in motions]
-    except (ValueError, ClipError) as e:
+        done = export_motions(input, output, fmt=fmt, fps=fps, title=title, body_model=body_model, gender=gender,
+                              model_type=model_type, fit_iterations=fit_iterations)
+    except (ValueError, ClipError, BodyModelError, EncodeError) as e:
         _fail(str(e))
-    shown = ", ".join(str(p) for p in paths[:3]) + (" ..." if len(paths) > 3 else "")
-    click.echo(f"wrote {len(paths)} {ext[1:].upper()} file(s): {shown}", err=True)
-
-
-def _manifest_titles(folder: Path) -> dict[str, str]:
-    """Output stem -> prompt (or action) from a generate folder's manifest.json."""
-    manifest = folder / "manifest.json" if folder.is_dir() else folder.parent / "manifest.json"
-    if not manifest.exists():
-        return {}
-    entries = json.loads(manifest.read_text()).get("motions", [])
-    return {e["joints"].removesuffix("_joints.npy"): e.get("text") or e.get("action") or "" for e in entries}
+    for item in done:
+        if item.params is not None:
+            click.echo(f"{item.path}: body fit error mean {item.fit_mean_error_mm:.1f} mm, "
+                       f"max {item.fit_max_error_mm:.1f} mm; parameters in {item.params}", err=True)
+    shown = ", ".join(str(d.path) for d in done[:3]) + (" ..." if len(done) > 3 else "")
+    click.echo(f"wrote {len(done)} {fmt.upper()} file(s): {shown}", err=True)
 
 
 if __name__ == "__main__":

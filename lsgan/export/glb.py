@@ -30,7 +30,9 @@ JOINT_RADIUS = 0.02  # metres, half-diagonal of the joint marker octahedron
 BONE_WIDTH = 0.12  # bone half-width as a fraction of its length
 BONE_MAX_WIDTH = 0.03  # metres
 STUB_FRACTION = 0.5
-FLOAT, UINT16 = 5126, 5123
+FLOAT, UINT8, UINT16, UINT32 = 5126, 5121, 5123, 5125
+COMPONENT = {np.dtype(np.float32): FLOAT, np.dtype(np.uint8): UINT8, np.dtype(np.uint16): UINT16,
+             np.dtype(np.uint32): UINT32}
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
@@ -93,7 +95,7 @@ class _Builder:
         self.accessors: list[dict] = []
 
     def add(self, data: np.ndarray, kind: str, *, target: int | None = None, bounds: bool = False) -> int:
-        """Append ``data`` (float32 or uint16) as one bufferView + accessor; returns the accessor index."""
+        """Append ``data`` (float32, uint8/16/32) as one bufferView + accessor; returns the accessor index."""
         data = np.ascontiguousarray(data)
         self.blob.extend(b"\0" * (-len(self.blob) % 4))
         view = {"buffer": 0, "byteOffset": len(self.blob), "byteLength": data.nbytes}
@@ -101,13 +103,13 @@ class _Builder:
             view["target"] = target
         self.blob.extend(data.tobytes())
         self.views.append(view)
-        component = UINT16 if data.dtype == np.uint16 else FLOAT
+        component = COMPONENT[data.dtype]
         width = 1 if data.ndim == 1 else data.shape[1]
         accessor = {"bufferView": len(self.views) - 1, "componentType": component, "count": int(data.shape[0]),
                     "type": kind}
         if bounds:
             flat = data.reshape(data.shape[0], width)
-            cast = int if component == UINT16 else float
+            cast = float if component == FLOAT else int
             accessor["min"] = [cast(x) for x in flat.min(axis=0)]
             accessor["max"] = [cast(x) for x in flat.max(axis=0)]
         self.accessors.append(accessor)
@@ -165,20 +167,31 @@ def gltf_document(joints: np.ndarray, *, fps: float = 20.0, name: str = "motion"
     samplers.append({"input": time_acc, "output": builder.add(pelvis, "VEC3"), "interpolation": "LINEAR"})
     channels.append({"sampler": NUM_JOINTS, "target": {"node": 1, "path": "translation"}})
 
+    extras = {"fps": float(fps), "frames": frames, "units": "metres", "up": "+Y", "forward": "+Z"}
+    return _finish(builder, name=name, scene_nodes=[0], nodes=nodes, meshes=meshes, materials=[material],
+                   animation={"name": name, "samplers": samplers, "channels": channels}, extras=extras)
+
+
+def _finish(builder: _Builder, *, name: str, scene_nodes: list[int], nodes: list[dict], meshes: list[dict],
+            materials: list[dict], animation: dict, extras: dict, skins: list[dict] | None = None,
+            ) -> tuple[dict, bytes]:
+    """The glTF JSON of a one-scene, one-animation file, and the padded BIN chunk."""
     builder.blob.extend(b"\0" * (-len(builder.blob) % 4))
     doc = {
         "asset": {"version": "2.0", "generator": "lsgan"},
         "scene": 0,
-        "scenes": [{"name": name, "nodes": [0]}],
+        "scenes": [{"name": name, "nodes": scene_nodes}],
         "nodes": nodes,
         "meshes": meshes,
-        "materials": [material],
-        "animations": [{"name": name, "samplers": samplers, "channels": channels}],
+        "materials": materials,
+        "animations": [animation],
         "accessors": builder.accessors,
         "bufferViews": builder.views,
         "buffers": [{"byteLength": len(builder.blob)}],
-        "extras": {"fps": float(fps), "frames": frames, "units": "metres", "up": "+Y", "forward": "+Z"},
+        "extras": extras,
     }
+    if skins:
+        doc["skins"] = skins
     return doc, bytes(builder.blob)
 
 
@@ -203,6 +216,111 @@ def write_glb(path: str | Path, joints: np.ndarray, *, fps: float = 20.0, name: 
     """Write :func:`joints_to_glb` to ``path`` atomically (a temporary file beside it, then os.replace)."""
     path = Path(path)
     data = joints_to_glb(joints, fps=fps, name=name or path.stem)
+    with atomic_file(path) as fh:
+        fh.write(data)
+    return path
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V,3); vertices in no face get +Y."""
+    tri = vertices[faces]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_n)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    return np.where(length > 1e-12, normals / np.maximum(length, 1e-12), [0.0, 1.0, 0.0])
+
+
+def _top4_weights(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 4 largest skinning weights per vertex, renormalised to sum to 1, and their joint indices.
+
+    Unused slots get weight 0 and joint index 0 (glTF ignores joints with zero weight)."""
+    idx = np.argsort(-weights, axis=1)[:, :4]
+    w = np.take_along_axis(weights, idx, axis=1).astype(np.float64)
+    w = np.where(w > 1e-6, w, 0.0)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+    idx = np.where(w > 0, idx, 0)
+    w = w.astype(np.float32)
+    w[:, 0] += 1.0 - w.sum(axis=1)  # float32 rounding: the sum is exactly 1 to within one ulp
+    dtype = np.uint8 if weights.shape[1] < 256 else np.uint16
+    return idx.astype(dtype), w
+
+
+def body_gltf_document(fit, model, *, name: str = "motion") -> tuple[dict, bytes]:
+    """glTF JSON and buffer of a fitted body: ONE skinned mesh and the model's skeleton, animated.
+
+    ``fit`` is a :class:`lsgan.export.body.BodyFit`, ``model`` the :class:`lsgan.data.body_model.BodyModel`
+    it was fitted with. Nodes: the mesh (scene root, skinned), then "lsgan_body" holding the J joint nodes
+    named after the model's joints. The mesh is the rest mesh with the fitted betas; glTF skinning is
+    linear blend skinning, so the pose-dependent corrective shapes of SMPL are left out. Joints beyond
+    the 22 of the motion (hands, jaw, eyes) stay at rest.
+    """
+    poses = np.asarray(fit.poses, dtype=np.float64).reshape(len(fit.poses), model.num_joints, 3)
+    frames, fps = poses.shape[0], float(fit.fps)
+    rest = model.rest_joints(fit.betas).astype(np.float64)
+    vertices = model.rest_vertices(fit.betas).astype(np.float64)
+    quat = Rotation.from_rotvec(poses.reshape(-1, 3)).as_quat().reshape(frames, model.num_joints, 4)
+    quat = _hemisphere_continuous(quat).astype(np.float32)
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    builder = _Builder()
+
+    joint_ids, weights = _top4_weights(model.weights)
+    index_dtype = np.uint16 if len(vertices) < 65535 else np.uint32
+    attributes = {
+        "POSITION": builder.add(vertices.astype(np.float32), "VEC3", target=ARRAY_BUFFER, bounds=True),
+        "NORMAL": builder.add(_vertex_normals(vertices, model.faces).astype(np.float32), "VEC3",
+                              target=ARRAY_BUFFER),
+        "JOINTS_0": builder.add(joint_ids, "VEC4", target=ARRAY_BUFFER),
+        "WEIGHTS_0": builder.add(weights, "VEC4", target=ARRAY_BUFFER),
+    }
+    indices = builder.add(model.faces.reshape(-1).astype(index_dtype), "SCALAR", target=ELEMENT_ARRAY_BUFFER,
+                          bounds=True)
+    material = {"name": "lsgan_body", "pbrMetallicRoughness": {"baseColorFactor": [0.62, 0.66, 0.74, 1.0],
+                                                              "metallicFactor": 0.0, "roughnessFactor": 0.8}}
+    mesh = {"name": f"{model.model_type}_body",
+            "primitives": [{"attributes": attributes, "indices": indices, "material": 0, "mode": 4}]}
+
+    first = 2  # node index of joint 0: node 0 is the skinned mesh, node 1 the skeleton root
+    nodes: list[dict] = [{"name": "body", "mesh": 0, "skin": 0}, {"name": "lsgan_body", "children": [first]}]
+    pelvis = (rest[0] + np.asarray(fit.trans, dtype=np.float64)).astype(np.float32)
+    for k, joint_name in enumerate(model.joint_names):
+        parent = int(model.parents[k])
+        translation = pelvis[0] if parent < 0 else (rest[k] - rest[parent]).astype(np.float32)
+        node = {"name": joint_name, "translation": [float(x) for x in translation],
+                "rotation": [float(x) for x in quat[0, k]]}
+        children = [first + c for c in np.flatnonzero(model.parents == k) if c > 0]
+        if children:
+            node["children"] = [int(c) for c in children]
+        nodes.append(node)
+    inverse_bind = np.tile(np.eye(4, dtype=np.float32), (model.num_joints, 1, 1))
+    inverse_bind[:, 3, :3] = -rest  # column-major storage: the translation sits in the last 4 floats
+    skin = {"name": f"{model.model_type}_skeleton", "skeleton": first,
+            "joints": list(range(first, first + model.num_joints)),
+            "inverseBindMatrices": builder.add(inverse_bind.reshape(-1, 16), "MAT4")}
+
+    times = (np.arange(frames, dtype=np.float64) / fps).astype(np.float32)
+    time_acc = builder.add(times, "SCALAR", bounds=True)
+    samplers, channels = [], []
+    for k in range(NUM_JOINTS):
+        samplers.append({"input": time_acc, "output": builder.add(quat[:, k], "VEC4"), "interpolation": "LINEAR"})
+        channels.append({"sampler": k, "target": {"node": first + k, "path": "rotation"}})
+    samplers.append({"input": time_acc, "output": builder.add(pelvis, "VEC3"), "interpolation": "LINEAR"})
+    channels.append({"sampler": NUM_JOINTS, "target": {"node": first, "path": "translation"}})
+
+    extras = {"fps": fps, "frames": frames, "units": "metres", "up": "+Y", "forward": "+Z",
+              "body_model": model.model_type, "gender": model.gender,
+              "betas": [float(b) for b in fit.betas], "fit_mean_error_mm": fit.mean_error_mm,
+              "fit_max_error_mm": fit.max_joint_error_mm}
+    return _finish(builder, name=name, scene_nodes=[0, 1], nodes=nodes, meshes=[mesh], materials=[material],
+                   animation={"name": name, "samplers": samplers, "channels": channels}, extras=extras,
+                   skins=[skin])
+
+
+def write_body_glb(path: str | Path, fit, model, *, name: str | None = None) -> Path:
+    """Write :func:`body_gltf_document` as a GLB to ``path`` atomically."""
+    path = Path(path)
+    data = pack_glb(*body_gltf_document(fit, model, name=name or path.stem))
     with atomic_file(path) as fh:
         fh.write(data)
     return path

@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from lsgan.data.body_model import ArrayUnpickler
 from lsgan.data.clip import ClipError, RawClip
 from lsgan.data.skeleton import FPS, NUM_JOINTS
 
@@ -144,23 +145,22 @@ def _read_npz_model(path: str) -> dict[str, Any]:
 def read_body_model_file(path: str) -> dict[str, Any]:
     """The arrays of an SMPL-H model file (``.npz`` or smplx's chumpy-free ``.pkl``), checked for SMPL-H shape.
 
-    ``.pkl`` files are unpickled (which can run code): only the path the user gives is read.
+    ``.pkl`` files are read with :class:`ArrayUnpickler`, which rebuilds arrays only and refuses other objects.
     Hand PCA entries missing from AMASS's model.npz are filled with identity/zeros; they are unused
     because the hand pose is taken as raw axis-angle (``use_pca=False, flat_hand_mean=True``).
     """
     try:
         if path.endswith(".pkl"):
-            logger.info("unpickling the SMPL-H model %s (pickles can run code: only use model files you trust)", path)
             with open(path, "rb") as fh:
-                data = dict(pickle.load(fh, encoding="latin1"))
+                data = dict(ArrayUnpickler(fh, encoding="latin1").load())
         else:
             data = _read_npz_model(path)
-    except ModuleNotFoundError as exc:
+    except pickle.UnpicklingError as exc:
         raise ClipError(
-            f"cannot read SMPL-H model {path}: it needs module {exc.name!r}; original MANO pickles hold chumpy "
+            f"cannot read SMPL-H model {path}: {exc}; original MANO pickles hold chumpy "
             "objects: convert them with smplx's tools/merge_smplh_mano.py or use AMASS's model.npz"
         ) from exc
-    except (OSError, ValueError, pickle.UnpicklingError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, AttributeError) as exc:
         raise ClipError(f"cannot read SMPL-H model {path}: {exc}") from exc
     missing = [k for k in _MODEL_KEYS if k not in data]
     if missing:
