@@ -2,7 +2,7 @@
 
 1. GAN training steps/s reading latents from the cache (lsgan's design) versus the naive design that runs
    the VAE encoder on every real batch, at the same batch size in the same run; reported as a ratio.
-2. Time per generated motion at batch 1 and 256, split into text encoding, generator and VAE decoding.
+Time per generated motion and FLOPs (GANs vs. the diffusion baseline) are measured by ``lsgan bench``.
 
     python benchmarks/models.py                  # CPU (and CUDA when torch sees a GPU)
     python benchmarks/models.py --json out.json --steps 20 --frames 120
@@ -15,14 +15,12 @@ import platform
 import sys
 import time
 
-import numpy as np
 import torch
 
+from lsgan.eval.bench import PAPER_VAE
 from lsgan.models.gan import GANConfig, LatentGAN, critic_loss_wgan_gp, g_loss_wgan
-from lsgan.models.text import load_text_encoder
-from lsgan.models.vae import MotionVAE, VAEConfig
+from lsgan.models.vae import MotionVAE
 
-PAPER_VAE = VAEConfig(latent_dim=256, d_model=256, num_layers=9, num_heads=4, ff_size=1024, dropout=0.1)
 PAPER_GAN = GANConfig(arch="deep-wgan-gp", noise_dim=100, latent_dim=256, cond="text", cond_dim=384)
 
 
@@ -95,41 +93,11 @@ def _gen_step(gan: LatentGAN, opt_g, cond: torch.Tensor) -> None:
     opt_g.step()
 
 
-def bench_generation(device: torch.device, batch: int, frames: int, repeats: int) -> dict:
-    """ms per motion for text encoding (MiniLM), the generator and VAE decoding, at one batch size."""
-    torch.manual_seed(0)
-    enc = load_text_encoder("minilm", device=device)
-    gan = LatentGAN(PAPER_GAN).to(device).eval()
-    vae = MotionVAE(PAPER_VAE).to(device).eval()
-    prompts = [f"a person walks forward and waves the {'left' if i % 2 else 'right'} hand {i} times" for i in range(batch)]
-    mask = torch.ones(batch, frames, dtype=torch.bool, device=device)
-    timings = {"text_encoding": [], "generator": [], "vae_decoding": []}
-    with torch.no_grad():
-        for r in range(repeats + 1):
-            t0 = time.perf_counter()
-            cond = enc.encode(prompts).to(device)
-            _sync(device)
-            t1 = time.perf_counter()
-            z = gan.generator(torch.randn(batch, 100, device=device), cond)
-            _sync(device)
-            t2 = time.perf_counter()
-            vae.decode(z, mask)
-            _sync(device)
-            t3 = time.perf_counter()
-            if r:  # the first round is a warm-up
-                for k, dt in zip(timings, (t1 - t0, t2 - t1, t3 - t2)):
-                    timings[k].append(1000 * dt / batch)
-    med = {k: float(np.median(v)) for k, v in timings.items()}
-    return {"batch": batch, "frames": frames, **{f"{k}_ms_per_motion": v for k, v in med.items()},
-            "total_ms_per_motion": sum(med.values())}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=10, help="GAN steps per design")
     ap.add_argument("--batch", type=int, default=64, help="GAN training batch size (paper: 64)")
     ap.add_argument("--frames", type=int, default=120, help="motion length for encoding and decoding (20 fps)")
-    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", help="also write the figures here")
     args = ap.parse_args()
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
@@ -140,12 +108,7 @@ def main() -> None:
         print(f"[{dev}] GAN training: cached {train['cached_steps_per_s']:.2f} steps/s, naive "
               f"{train['naive_vae_every_batch_steps_per_s']:.2f} steps/s -> x{train['speedup_cached_vs_naive']:.1f}",
               file=sys.stderr)
-        gen = [bench_generation(dev, b, args.frames, args.repeats) for b in (1, 256)]
-        for g in gen:
-            print(f"[{dev}] generation batch {g['batch']}: {g['total_ms_per_motion']:.2f} ms/motion (text "
-                  f"{g['text_encoding_ms_per_motion']:.2f}, generator {g['generator_ms_per_motion']:.3f}, "
-                  f"VAE decoder {g['vae_decoding_ms_per_motion']:.2f})", file=sys.stderr)
-        report["results"].append({"device": str(dev), "training": train, "generation": gen})
+        report["results"].append({"device": str(dev), "training": train})
     text = json.dumps(report, indent=1)
     if args.json:
         with open(args.json, "w") as f:

@@ -29,6 +29,7 @@ def main() -> None:
       lsgan train-vae --data synth.h5 --recipe demo --out runs/vae
       lsgan encode-latents --data synth.h5 --vae runs/vae -o cache.h5
       lsgan train-gan --cache cache.h5 --recipe demo --out runs/gan
+      lsgan train-diffusion --cache cache.h5 --recipe demo --out runs/diffusion   # the MLD baseline
       lsgan generate --gan runs/gan --vae runs/vae --text "a person walks forward" -o out/
     """
 
@@ -279,6 +280,133 @@ def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_st
         _fail(str(e))
     click.echo(json.dumps(result, default=str), err=True)
 
+@main.command("train-evaluator", epilog="""\b
+Examples:
+  lsgan train-evaluator --data synth.h5 --recipe demo --out runs/evaluator
+  lsgan train-evaluator --data bandai.h5 --recipe bandai --out runs/bandai-evaluator
+  lsgan train-evaluator --data bandai.h5 --recipe bandai --kind action --out runs/bandai-action-clf
+  lsgan train-evaluator --data act12.h5 --recipe humanact12 --out runs/act12-classifier --device cuda
+  lsgan train-evaluator --data hml3d.h5 --recipe humanml3d --out runs/hml3d-evaluator --resume
+  lsgan evaluate ... --evaluator runs/evaluator     # or the folder of the official T2M files
+""")
+@click.option("--data", multiple=True, required=True, type=click.Path(exists=True, dir_okay=False), help="Shard(s) to train on.")
+@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv, heldout.json).")
+@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its evaluator: section (text:, action:) sets the hyperparameters.")
+@click.option("--kind", type=click.Choice(["text", "action"]),
+              help="text: text-motion evaluator (captions); action: action-recognition GRU (action labels). "
+                   "Default: the recipe's only evaluator kind, else text.")
+@click.option("--max-steps", type=int, help="Override the recipe's number of training steps.")
+@click.option("--batch-size", type=int, help="Override the recipe's batch size.")
+@click.option("--seed", type=int, help="Override the recipe's seed.")
+@click.option("--text-encoder", help="text: frozen sentence encoder, minilm or clip-vit-l-14 (default: the recipe's, else minilm).")
+@click.option("--text-encoder-path", type=click.Path(exists=True), help="text: local folder of the sentence encoder's weights.")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, text_encoder, text_encoder_path, device,
+                        resume) -> None:
+    """Train an evaluator for `lsgan evaluate` on your data and report held-out figures.
+
+    \b
+    text:   our text-motion evaluator: T2M's motion encoder and, instead of GloVe, a head on a frozen sentence
+            encoder; trained contrastively as T2M (margin 10). Prints held-out R-precision top-1/2/3 (groups
+            of 32) and MM-Dist on the test split (else val).
+    action: the action-recognition GRU (joints x 3, hidden 128, 2 layers, 30-d features); prints held-out accuracy.
+    """
+    from lsgan.models.evaluator import ActionClassifierConfig, EvaluatorConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.common import TrainingDiverged
+    from lsgan.train.evaluator import (
+        ActionTrainConfig,
+        EvaluatorTrainConfig,
+        train_action_classifier,
+        train_evaluator,
+    )
+
+    full = _recipe(recipe)
+    try:
+        sections = section(full, "evaluator")
+        if kind is None:
+            present = [k for k in ("text", "action") if k in sections]
+            kind = present[0] if len(present) == 1 else "text"
+        r = section(sections, kind)
+        train_values = _overrides(section(r, "train"), max_steps=max_steps, batch_size=batch_size, seed=seed)
+        if kind == "text":
+            model_values = dict(section(r, "model"))
+            if text_encoder or "text_encoder" not in model_values:
+                model_values["text_encoder"] = text_encoder or full.get("text_encoder") or "minilm"
+            result = train_evaluator(
+                list(data), out, config=build(EvaluatorConfig, model_values, "evaluator.text.model"),
+                train_config=build(EvaluatorTrainConfig, train_values, "evaluator.text.train"), device=device,
+                resume=resume, text_encoder_path=text_encoder_path)
+        else:
+            result = train_action_classifier(
+                list(data), out, config=build(ActionClassifierConfig, section(r, "model"), "evaluator.action.model"),
+                train_config=build(ActionTrainConfig, train_values, "evaluator.action.train"), device=device,
+                resume=resume)
+    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
+        _fail(str(e))
+    except Exception as e:  # noqa: BLE001 - e.g. a text encoder whose weights are absent: say so plainly
+        _fail(f"{type(e).__name__}: {e}")
+    click.echo(json.dumps(result, default=str), err=True)
+    h = result["heldout"]
+    if "r_precision_top3" in h:
+        click.echo(f"held-out ({h['split']}, {h['pairs']} pairs, groups of {h['group_size']}): R-precision "
+                   f"top-1 {h['r_precision_top1']:.3f}, top-2 {h['r_precision_top2']:.3f}, top-3 {h['r_precision_top3']:.3f} "
+                   f"(chance {h['chance_top1']:.3f}/{h['chance_top2']:.3f}/{h['chance_top3']:.3f}); "
+                   f"MM-Dist {h['mm_dist']:.3f}")
+    elif "accuracy" in h:
+        click.echo(f"held-out ({h['split']}, {h['clips']} clips): accuracy {h['accuracy']:.3f} "
+                   f"(chance {h['chance']:.3f}, majority class {h['majority']:.3f})")
+    else:
+        click.echo("no held-out split (test or val) to report on")
+
+
+@main.command("train-diffusion", epilog="""\b
+Examples:
+  lsgan train-diffusion --cache cache.h5 --recipe demo --out runs/diffusion
+  lsgan train-diffusion --cache bandai-cache.h5 --recipe bandai --out runs/bandai-diffusion --device cuda
+  lsgan train-diffusion --cache act12-cache.h5 --recipe humanact12 --out runs/act-diffusion --resume
+  lsgan generate --gan runs/diffusion --vae runs/vae --text "a person walks forward" --steps 50 --guidance 7.5 -o out/
+""")
+@click.option("--cache", required=True, type=click.Path(exists=True, dir_okay=False), help="Latent cache from encode-latents.")
+@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its diffusion: section sets every hyperparameter.")
+@click.option("--cond", type=click.Choice(["text", "action"]), help="Condition on caption embeddings or action labels.")
+@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv).")
+@click.option("--max-steps", type=int, help="Override the recipe's number of training steps.")
+@click.option("--seed", type=int)
+@click.option("--vae", type=click.Path(exists=True), help="Check the cache against this VAE (default: the VAE it was encoded with).")
+@click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded.")
+@click.option("--device", default="auto", show_default=True)
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_stale, device, resume) -> None:
+    """Train the latent-diffusion baseline (MLD's denoiser, DDIM, classifier-free guidance) on the same cache.
+
+    Like train-gan it reads the cache alone and refuses one whose VAE has changed since it was encoded;
+    `lsgan generate --gan RUN` and `lsgan evaluate` take the result wherever they take a GAN.
+    """
+    from lsgan.models.cache import read_cache_attrs
+    from lsgan.models.checkpoint import weights_hash
+    from lsgan.models.diffusion import DiffusionConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.common import TrainingDiverged
+    from lsgan.train.diffusion import DiffusionTrainConfig, train_diffusion
+
+    r = section(_recipe(recipe), "diffusion")
+    try:
+        expect = None
+        if not allow_stale:
+            vae_path = vae or read_cache_attrs(cache).get("vae_path")
+            if vae_path and Path(vae_path).exists():
+                expect = weights_hash(vae_path)
+        model = build(DiffusionConfig, _overrides(section(r, "model"), cond=cond), "diffusion.model")
+        train = build(DiffusionTrainConfig, _overrides(section(r, "train"), max_steps=max_steps, seed=seed),
+                      "diffusion.train")
+        result = train_diffusion(cache, out, diffusion=model, train=train, device=device, resume=resume,
+                                 expect_vae_hash=expect)
+    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
+        _fail(str(e))
+    click.echo(json.dumps(result, default=str), err=True)
+
 
 @main.command(epilog="""\b
 Examples:
@@ -286,9 +414,11 @@ Examples:
   lsgan generate --gan runs/gan --vae runs/vae --text "someone jumps twice" --seconds 4 --num 4 --seed 1 -o out/
   lsgan generate --gan runs/gan --vae runs/vae --prompts prompts.txt -o out/     # lines: 'prompt' or 'prompt#frames'
   lsgan generate --gan runs/act-gan --vae runs/vae --action jump --num 8 -o out/
+  lsgan generate --gan runs/diffusion --vae runs/vae --text "a person waves" --steps 50 --guidance 7.5 -o out/
 """)
-@click.option("--gan", required=True, type=click.Path(exists=True), help="GAN run or checkpoint folder.")
-@click.option("--vae", required=True, type=click.Path(exists=True), help="The VAE whose latents the GAN learned.")
+@click.option("--gan", required=True, type=click.Path(exists=True),
+              help="Generator checkpoint: GAN or diffusion (run or checkpoint folder).")
+@click.option("--vae", required=True, type=click.Path(exists=True), help="The VAE whose latents the generator learned.")
 @click.option("--text", "texts", multiple=True, help="A prompt (repeat for several).")
 @click.option("--prompts", type=click.Path(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
 @click.option("--action", "actions", multiple=True, help="An action label, for action-conditioned models (repeatable).")
@@ -299,9 +429,13 @@ Examples:
 @click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder (CLIP).")
 @click.option("--batch-size", default=256, show_default=True)
 @click.option("--device", default="auto", show_default=True)
+@click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps (default: the checkpoint's, 50 in MLD).")
+@click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
-def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path, batch_size, device, output) -> None:
-    """Generate motions from sentences or action labels: one generator pass, one VAE decoder pass."""
+def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path, batch_size, device, steps,
+             guidance, output) -> None:
+    """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
+    of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.generate import Request, read_prompts, write_generation
     from lsgan.generate import generate as run
 
@@ -317,7 +451,10 @@ def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text
         raise click.UsageError("give --text, --prompts or --action")
     try:
         result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
-                     batch_size=batch_size)
+                     batch_size=batch_size, steps=steps, guidance=guidance)
+        if result.kind == "gan" and (steps is not None or guidance is not None):
+            click.echo(f"note: --steps/--guidance ignored: {gan} is a GAN (they set a diffusion model's sampling)",
+                       err=True)
         manifest = write_generation(result, output)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
@@ -379,6 +516,132 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
                        f"max {item.fit_max_error_mm:.1f} mm; parameters in {item.params}", err=True)
     shown = ", ".join(str(d.path) for d in done[:3]) + (" ..." if len(done) > 3 else "")
     click.echo(f"wrote {len(done)} {fmt.upper()} file(s): {shown}", err=True)
+
+
+@main.command(epilog="""\b
+Examples:
+  lsgan evaluate --gan runs/gan --vae runs/vae --data bandai.h5 --evaluator runs/evaluator -o results/bandai
+  lsgan evaluate --gan deep=runs/gan --gan diffusion=runs/diffusion --vae runs/vae --data bandai.h5 \\
+      --evaluator runs/evaluator --replications 20 -o results/bandai
+  lsgan evaluate --vae-only --vae runs/vae --data bandai.h5 --evaluator runs/evaluator -o results/vae
+  lsgan evaluate --action --gan runs/act-gan --vae runs/vae --data humanact12.h5 --evaluator runs/action-clf -o act
+  lsgan evaluate ... --evaluator ~/t2m-official     # the official T2M evaluator (finest.tar + GloVe + meta)
+""")
+@click.option("--gan", "models", multiple=True, metavar="[NAME=]PATH",
+              help="A generator checkpoint (GAN or diffusion); repeat to compare several in one table.")
+@click.option("--vae", required=True, type=click.Path(exists=True), help="The VAE the generators decode with.")
+@click.option("--data", required=True, type=click.Path(exists=True), help="Shard with the evaluation split.")
+@click.option("--evaluator", type=click.Path(exists=True),
+              help="Text-motion evaluator (train-evaluator run or official T2M folder); the action classifier with --action.")
+@click.option("--split", default="test", show_default=True)
+@click.option("--replications", default=None, type=click.IntRange(1), help="[default: 20; 1 with --vae-only]")
+@click.option("--mm-captions", default=100, show_default=True, help="MultiModality: captions (0 skips it).")
+@click.option("--mm-samples", default=30, show_default=True, help="MultiModality: motions per caption.")
+@click.option("--min-frames", default=40, show_default=True, help="Shortest test window (Bandai recipe: 16).")
+@click.option("--max-frames", default=196, show_default=True, help="Longest test window (crop beyond).")
+@click.option("--samples", default=1000, show_default=True, help="--action: generated motions per replication.")
+@click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps (default: the checkpoint's).")
+@click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")
+@click.option("--vae-only", is_flag=True, help="The VAE reconstruction table (APE/AVE, MPJPE, FID).")
+@click.option("--action", "action_table", is_flag=True, help="The action-to-motion table (HumanAct12 style).")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--device", default="auto", show_default=True)
+@click.option("-o", "--output", required=True, type=click.Path(), help="Writes OUTPUT.md and OUTPUT.json.")
+def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_samples, min_frames, max_frames,
+             samples, steps, guidance, vae_only, action_table, seed, device, output) -> None:
+    """The paper's tables: Real row, model rows, 95% confidence half-widths (markdown + JSON)."""
+    from lsgan.eval.evaluate import (evaluate_action_to_motion, evaluate_reconstruction, evaluate_text_to_motion,
+                                     write_table)
+
+    named = {}
+    for spec in models:
+        name, _, path = spec.rpartition("=") if "=" in spec else (Path(spec).name, "", spec)
+        if not Path(path).exists():
+            raise click.BadParameter(f"{path} does not exist", param_hint="--gan")
+        named[name] = path
+    if vae_only and action_table:
+        raise click.UsageError("choose one of --vae-only and --action")
+    if not vae_only and not named:
+        raise click.UsageError("give at least one --gan checkpoint (or --vae-only)")
+    if not vae_only and evaluator is None:
+        raise click.UsageError("--evaluator is required (train one with `lsgan train-evaluator`)")
+    progress = lambda msg: click.echo(msg, err=True)  # noqa: E731
+    try:
+        if vae_only:
+            table = evaluate_reconstruction(vae, data, evaluator=evaluator, split=split, replications=replications or 1,
+                                            min_frames=min_frames, max_frames=max_frames, seed=seed, device=device)
+        elif action_table:
+            table = evaluate_action_to_motion(named, vae, data, evaluator, split=split, replications=replications or 20,
+                                              samples=samples, seed=seed, device=device, min_frames=min_frames,
+                                              max_frames=max_frames, steps=steps, guidance=guidance, progress=progress)
+        else:
+            table = evaluate_text_to_motion(named, vae, data, evaluator, split=split, replications=replications or 20,
+                                            mm_captions=mm_captions, mm_samples=mm_samples, min_frames=min_frames,
+                                            max_frames=max_frames, seed=seed, device=device, steps=steps,
+                                            guidance=guidance, progress=progress)
+    except (ValueError, FileNotFoundError) as e:
+        _fail(str(e))
+    md, js = write_table(table, output)
+    click.echo(table.to_markdown())
+    click.echo(f"wrote {md} and {js}", err=True)
+
+
+@main.command(epilog="""\b
+Examples:
+  lsgan bench                                   # paper-sized GANs and MLD denoiser, random weights, CPU (+GPU)
+  lsgan bench --json bench.json --steps 50 --frames 196
+  lsgan bench --gan runs/gan --diffusion runs/diffusion --vae runs/vae   # your checkpoints
+""")
+@click.option("--gan", "gans", multiple=True, type=click.Path(exists=True), help="GAN checkpoint(s) instead of paper-sized ones.")
+@click.option("--diffusion", type=click.Path(exists=True), help="Diffusion checkpoint instead of a paper-sized denoiser.")
+@click.option("--vae", type=click.Path(exists=True), help="VAE checkpoint for decoding (default: paper-sized).")
+@click.option("--steps", default=50, show_default=True, help="DDIM steps of the denoiser.")
+@click.option("--guidance", default=7.5, show_default=True, help="Classifier-free guidance (2 passes per step).")
+@click.option("--frames", default=120, show_default=True, help="Motion length decoded per sample (20 fps).")
+@click.option("--repeats", default=3, show_default=True, help="Timed runs per figure (median).")
+@click.option("--device", "devices", multiple=True, help="cpu, cuda (default: cpu, and cuda when present).")
+@click.option("--json", "json_out", type=click.Path(), help="Write the rows as JSON.")
+def bench(gans, diffusion, vae, steps, guidance, frames, repeats, devices, json_out) -> None:
+    """FLOPs for 2048 clips and measured time per motion (b1, b256) for each generator and the denoiser."""
+    from lsgan.eval.bench import bench_samplers, format_table, rows_as_dicts, run_bench
+    from lsgan.io import atomic_file
+
+    try:
+        samplers, decoder = bench_samplers(gans=gans, diffusion=diffusion, vae=vae, steps=steps, guidance=guidance)
+        rows = run_bench(samplers, vae=decoder, devices=list(devices) or None, frames=frames, repeats=repeats,
+                         progress=lambda m: click.echo(m, err=True))
+    except (ValueError, FileNotFoundError) as e:
+        _fail(str(e))
+    click.echo(format_table(rows))
+    if json_out:
+        with atomic_file(json_out, "w", encoding="utf-8") as fh:
+            json.dump(rows_as_dicts(rows), fh, indent=1)
+
+
+@main.command("plot-latents", epilog="""\b
+Examples:
+  lsgan plot-latents --cache bandai-cache.h5 --gan runs/bandai-gan -o figures/latents.png
+  lsgan plot-latents --cache bandai-cache.h5 --gan runs/bandai-diffusion --per-class 100 -o diffusion.png
+""")
+@click.option("--cache", required=True, type=click.Path(exists=True), help="Latent cache (encode-latents).")
+@click.option("--gan", "model", required=True, type=click.Path(exists=True), help="GAN or diffusion checkpoint.")
+@click.option("--split", default="test", show_default=True)
+@click.option("--per-class", default=50, show_default=True, help="Clips per action.")
+@click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps.")
+@click.option("--guidance", type=float, help="Diffusion: guidance scale.")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--device", default="auto", show_default=True)
+@click.option("-o", "--output", required=True, type=click.Path(), help="PNG file.")
+def plot_latents_cmd(cache, model, split, per_class, steps, guidance, seed, device, output) -> None:
+    """t-SNE of real and generated latents coloured by action (the paper's Figure 4), as PNG."""
+    from lsgan.eval.plot import plot_latents
+
+    try:
+        path = plot_latents(cache, model, output, split=split, per_class=per_class, seed=seed, device=device,
+                            steps=steps, guidance=guidance)
+    except ValueError as e:
+        _fail(str(e))
+    click.echo(f"wrote {path}", err=True)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,11 @@
-"""``lsgan generate``: motion from sentences or action labels, one generator pass plus one decoder pass."""
+"""``lsgan generate``: motion from sentences or action labels: latents from a generator, then one VAE decoder pass.
+
+The generator is a latent GAN (one generator pass) or the latent-diffusion baseline (DDIM over ``steps`` steps
+with classifier-free ``guidance``); ``load_generator`` tells them apart by the checkpoint's kind. Both produce
+standardised latents from the same conditions, so text encoding, de-standardising and decoding are one code path.
+Timings: ``text_encoding``, ``generator`` (the GAN's generator pass, or every DDIM step of the denoiser with both
+halves of guidance: the time from conditions to latents either way) and ``vae_decoding``.
+"""
 from __future__ import annotations
 
 import json
@@ -36,9 +43,11 @@ class Motion:
 class Generation:
     motions: list[Motion]
     timings_s: dict[str, float] = field(default_factory=dict)
-    gan: str = ""
+    gan: str = ""  # the generator checkpoint (GAN or diffusion; the name is kept for compatibility)
     vae: str = ""
     seed: int = 0
+    kind: str = "gan"  # "gan" or "diffusion"
+    sampling: dict = field(default_factory=dict)  # diffusion: {"steps", "guidance", "eta"}; GAN: {}
 
     @property
     def ms_per_motion(self) -> float:
@@ -62,6 +71,117 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+GENERATOR_KINDS = ("gan", "diffusion")
+
+
+def load_generator(path: str | os.PathLike, device: str | torch.device = "cpu", prefer: str = "best"):
+    """(model in eval mode, meta) of a latent generator checkpoint: a LatentGAN or a LatentDiffusion, by its kind.
+
+    Both have ``config`` (cond, cond_dim, latent_dim, ...), ``sample(cond, num=None, generator=None, ...)`` and the
+    same meta["extra"] (latent_mean/latent_std, vae_hash, text_encoder, action_names).
+    """
+    from lsgan.models.checkpoint import read_meta
+
+    kind = read_meta(path, prefer).get("kind")
+    if kind == "gan":
+        from lsgan.models.gan import load_gan
+
+        return load_gan(path, device=device, prefer=prefer)
+    if kind == "diffusion":
+        from lsgan.models.diffusion import load_diffusion
+
+        return load_diffusion(path, device=device, prefer=prefer)
+    raise ValueError(f"{path}: holds a {kind!r} checkpoint, not a generator (GAN or diffusion: {GENERATOR_KINDS})")
+
+
+def _conditions(model, extra: dict, name, requests: list[Request], dev: torch.device,
+                text_encoder_path: str | None, timings: dict[str, float]) -> torch.Tensor:
+    """The condition per request: text embeddings (R, D) from the model's own text encoder, or action ids (R,)."""
+    if model.config.cond == "text":
+        if any(r.text is None for r in requests):
+            raise ValueError(f"{name} is conditioned on text: give prompts (--text or --prompts), not --action")
+        from lsgan.models.text import load_text_encoder
+
+        enc_id = extra.get("text_encoder", "minilm")
+        enc = load_text_encoder(enc_id.split(":")[0], path=text_encoder_path, device=dev)
+        if enc.id != enc_id:
+            raise ValueError(f"{name} was trained with text encoder {enc_id!r}, but {enc.id!r} was loaded")
+        t0 = time.perf_counter()
+        cond = enc.encode([r.text for r in requests]).to(dev)
+        _sync(dev)
+        timings["text_encoding"] = time.perf_counter() - t0
+        return cond
+    names = extra.get("action_names", [])
+    unknown = sorted({r.action for r in requests if r.action not in names})
+    if unknown:
+        raise ValueError(f"unknown action(s) {unknown}; this model knows {names}")
+    return torch.tensor([names.index(r.action) for r in requests], device=dev)
+
+
+def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device, *, num: int, seed: int,
+             text_encoder_path: str | None, batch_size: int, steps: int | None, guidance: float | None,
+             eta: float | None, timings: dict[str, float]) -> tuple[torch.Tensor, dict]:
+    """(latents (R*num, Z) in the VAE's latent space, on dev; the diffusion sampling options used, {} for a GAN).
+
+    The starting noise (the GAN's noise, the diffusion's z_T) of every motion is drawn up front on the CPU from
+    ``seed``, so latents depend neither on ``batch_size`` nor on the device's random generator.
+    """
+    extra = meta.get("extra", {})
+    cond = _conditions(model, extra, name, requests, dev, text_encoder_path, timings)
+    cond = cond.repeat_interleave(num, dim=0)  # (R*num, ...)
+    n = len(cond)
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    if meta["kind"] == "gan":
+        sampling: dict = {}
+        noise = torch.randn(n, model.config.noise_dim, generator=g).to(dev)
+
+        def latents(noise_b: torch.Tensor, cond_b: torch.Tensor) -> torch.Tensor:
+            return model.generator(noise_b, cond_b)
+    else:
+        cfg = model.config
+        sampling = {"steps": cfg.sample_steps if steps is None else steps,
+                    "guidance": cfg.guidance_scale if guidance is None else guidance,
+                    "eta": cfg.eta if eta is None else eta}
+        if sampling["steps"] < 1:
+            raise ValueError(f"steps must be >= 1, got {sampling['steps']}")
+        noise = torch.randn(n, cfg.latent_dim, generator=g).to(dev)  # z_T
+
+        def latents(noise_b: torch.Tensor, cond_b: torch.Tensor) -> torch.Tensor:
+            return model.sample(cond_b, generator=g, noise=noise_b, **sampling)
+    mean_z = torch.as_tensor(np.asarray(extra["latent_mean"], np.float32), device=dev)
+    std_z = torch.as_tensor(np.asarray(extra["latent_std"], np.float32), device=dev)
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        z = torch.cat([latents(noise[b : b + batch_size], cond[b : b + batch_size]) for b in range(0, n, batch_size)])
+        z = z * std_z + mean_z
+        _sync(dev)
+        timings["generator"] = time.perf_counter() - t0
+    return z, sampling
+
+
+def sample_latents(
+    gen: str | os.PathLike,
+    requests: list[Request],
+    *,
+    num: int = 1,
+    seed: int = 0,
+    device: str = "auto",
+    text_encoder_path: str | None = None,
+    batch_size: int = 256,
+    steps: int | None = None,
+    guidance: float | None = None,
+    eta: float | None = None,
+) -> np.ndarray:
+    """The latents (len(requests)*num, Z), in the VAE's latent space, that ``generate`` decodes for these arguments."""
+    from lsgan.train.common import pick_device
+
+    dev = pick_device(device)
+    model, meta = load_generator(gen, device=dev)
+    z, _ = _latents(model, meta, gen, requests, dev, num=num, seed=seed, text_encoder_path=text_encoder_path,
+                    batch_size=batch_size, steps=steps, guidance=guidance, eta=eta, timings={})
+    return z.cpu().numpy()
+
+
 def generate(
     gan: str | os.PathLike,
     vae: str | os.PathLike,
@@ -73,58 +193,37 @@ def generate(
     text_encoder_path: str | None = None,
     batch_size: int = 256,
     strict_pairing: bool = True,
+    steps: int | None = None,
+    guidance: float | None = None,
+    eta: float | None = None,
 ) -> Generation:
-    """``num`` motions per request. Deterministic under ``seed`` (same inputs, same device -> same motions)."""
+    """``num`` motions per request. Deterministic under ``seed`` (same inputs, same device -> same motions).
+
+    ``gan``: a generator checkpoint, GAN or diffusion. ``steps`` (DDIM steps), ``guidance`` (classifier-free
+    guidance scale) and ``eta`` are the diffusion's sampling options (default: its config's sample_steps,
+    guidance_scale, eta); a GAN has none and ignores them, so one set of options can serve a comparison of
+    both kinds (``Generation.sampling`` records what was used: {} for a GAN). With eta > 0 the noise of the
+    DDIM steps is drawn batch by batch, so it depends on ``batch_size``; the starting noise never does.
+    """
     from lsgan.models.checkpoint import weights_hash
-    from lsgan.models.gan import load_gan
     from lsgan.models.vae import load_vae
     from lsgan.train.common import pick_device
 
     dev = pick_device(device)
-    model, gmeta = load_gan(gan, device=dev)
+    model, gmeta = load_generator(gan, device=dev)
     decoder, vmeta = load_vae(vae, device=dev)
     extra = gmeta.get("extra", {})
     if strict_pairing and extra.get("vae_hash") and extra["vae_hash"] != weights_hash(vae):
         raise ValueError(
             f"{gan} was trained on latents of another VAE checkpoint than {vae}; "
-            "use the VAE its cache was encoded with (its path is in the GAN's config.json)"
+            f"use the VAE its cache was encoded with (its path is in the {gmeta['kind']}'s config.json)"
         )
-    cond_kind = model.config.cond
     timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
-    if cond_kind == "text":
-        if any(r.text is None for r in requests):
-            raise ValueError(f"{gan} is conditioned on text: give prompts (--text or --prompts), not --action")
-        from lsgan.models.text import load_text_encoder
-
-        enc_id = extra.get("text_encoder", "minilm")
-        enc = load_text_encoder(enc_id.split(":")[0], path=text_encoder_path, device=dev)
-        if enc.id != enc_id:
-            raise ValueError(f"{gan} was trained with text encoder {enc_id!r}, but {enc.id!r} was loaded")
-        t0 = time.perf_counter()
-        cond = enc.encode([r.text for r in requests]).to(dev)
-        _sync(dev)
-        timings["text_encoding"] = time.perf_counter() - t0
-    else:
-        names = extra.get("action_names", [])
-        unknown = sorted({r.action for r in requests if r.action not in names})
-        if unknown:
-            raise ValueError(f"unknown action(s) {unknown}; this model knows {names}")
-        cond = torch.tensor([names.index(r.action) for r in requests], device=dev)
-
-    mean_z = torch.as_tensor(np.asarray(extra["latent_mean"], np.float32), device=dev)
-    std_z = torch.as_tensor(np.asarray(extra["latent_std"], np.float32), device=dev)
-    cond = cond.repeat_interleave(num, dim=0)  # (R*num, ...)
+    z, sampling = _latents(model, gmeta, gan, requests, dev, num=num, seed=seed, text_encoder_path=text_encoder_path,
+                           batch_size=batch_size, steps=steps, guidance=guidance, eta=eta, timings=timings)
     frames = [r.frames for r in requests for _ in range(num)]
-    g = torch.Generator(device="cpu").manual_seed(seed)
-    noise = torch.randn(len(frames), model.config.noise_dim, generator=g).to(dev)
     feats: list[np.ndarray] = [None] * len(frames)  # type: ignore[list-item]
     with torch.no_grad():
-        t0 = time.perf_counter()
-        z = torch.cat([model.generator(noise[b : b + batch_size], cond[b : b + batch_size])
-                       for b in range(0, len(frames), batch_size)])
-        z = z * std_z + mean_z
-        _sync(dev)
-        timings["generator"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         order = sorted(range(len(frames)), key=lambda i: frames[i])
         for b in range(0, len(order), batch_size):
@@ -141,7 +240,8 @@ def generate(
                joints=recover_from_ric(f.astype(np.float32)))
         for k, f in enumerate(feats)
     ]
-    return Generation(motions=motions, timings_s=timings, gan=str(gan), vae=str(vae), seed=seed)
+    return Generation(motions=motions, timings_s=timings, gan=str(gan), vae=str(vae), seed=seed, kind=gmeta["kind"],
+                      sampling=sampling)
 
 
 def _slug(text: str, limit: int = 40) -> str:
@@ -164,10 +264,12 @@ def write_generation(result: Generation, out: str | os.PathLike) -> Path:
             "seconds": len(m.features) / FPS, "sample": m.sample, "features": f"{stem}_features.npy",
             "joints": f"{stem}_joints.npy",
         })
+    generator = {"path": str(resolve(result.gan)), "sha256": weights_hash(result.gan)}
     manifest = {
         "seed": result.seed,
         "fps": FPS,
-        "gan": {"path": str(resolve(result.gan)), "sha256": weights_hash(result.gan)},
+        "generator": {"kind": result.kind, **generator, **result.sampling},
+        "gan": generator,  # the generator checkpoint under its historical key, whatever its kind
         "vae": {"path": str(resolve(result.vae)), "sha256": weights_hash(result.vae)},
         "timings_s": result.timings_s,
         "ms_per_motion": result.ms_per_motion,

@@ -1,4 +1,9 @@
-"""Recipes: YAML files that name every hyperparameter of a run, read into the config dataclasses."""
+"""Recipes: YAML files that name every hyperparameter of a run, read into the config dataclasses.
+
+Sections: ``text_encoder`` (a name), ``vae``, ``gan`` and ``diffusion`` (each ``model:`` and ``train:``, read by
+train-vae, train-gan and train-diffusion into VAEConfig/VAETrainConfig, GANConfig/GANTrainConfig and
+DiffusionConfig/DiffusionTrainConfig), ``evaluator``. ``build`` refuses keys a dataclass does not have.
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -21,7 +26,7 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
         raise FileNotFoundError(f"recipe {path} not found (give a YAML file, or a name from {RECIPES})")
     data = yaml.safe_load(p.read_text()) or {}
     if not isinstance(data, dict):
-        raise ValueError(f"{p}: a recipe is a mapping of sections (vae:, gan:, ...)")
+        raise ValueError(f"{p}: a recipe is a mapping of sections (vae:, gan:, diffusion:, ...)")
     return data
 
 

@@ -1,1 +1,1 @@
-"""Models: the motion VAE, the latent GANs, text encoders, and their checkpoints."""
+"""Models: the motion VAE, the latent GANs, the latent-diffusion baseline, text encoders, and their checkpoints."""

@@ -1,1 +1,1 @@
-"""Training loops (VAE, GAN) and what they share: devices, distributed runs, logs."""
+"""Training loops (VAE, GAN, diffusion) and what they share: devices, distributed runs, logs."""

@@ -5,8 +5,10 @@ import csv
 import math
 import os
 import random
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -82,6 +84,28 @@ def teardown_distributed(d: Dist) -> None:
     if d.enabled and dist.is_initialized():
         dist.barrier()
         dist.destroy_process_group()
+
+
+R = TypeVar("R")
+
+
+def run_distributed(device: str, body: Callable[[torch.device, Dist], R]) -> R:
+    """``body(device, dist)`` on the picked device, inside the torchrun process group when there is one.
+
+    The group is left with a barrier after success; after a failure it is destroyed without one (the other
+    ranks may be gone).
+    """
+    dev = pick_device(device)
+    d = setup_distributed(dev)
+    dev = local_device(dev, d)
+    try:
+        result = body(dev, d)
+    except BaseException:
+        if d.enabled and dist.is_initialized():
+            dist.destroy_process_group()
+        raise
+    teardown_distributed(d)
+    return result
 
 
 def check_finite(losses: dict[str, float], step: int) -> None:

@@ -22,18 +22,14 @@ import os
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
-import torch.distributed as dist
-from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from lsgan.eval.metrics import fid
-from lsgan.models.cache import LatentCacheData, StaleCache, read_latent_cache
-from lsgan.models.checkpoint import CONFIG, load_state, load_weights, save_checkpoint
+from lsgan.models.cache import read_latent_cache
+from lsgan.models.checkpoint import CONFIG, save_checkpoint
 from lsgan.models.gan import (
     GANConfig,
     LatentGAN,
@@ -48,16 +44,24 @@ from lsgan.train.common import (
     RunLog,
     all_reduce_mean,
     check_finite,
-    local_device,
-    pick_device,
+    run_distributed,
     seed_everything,
-    setup_distributed,
-    teardown_distributed,
+)
+from lsgan.train.latents import (  # noqa: F401  (pairs, EvalSet, EVAL_SPLITS: importable from here as before)
+    EVAL_SPLITS,
+    EvalSet,
+    LatentPairs,
+    checkpoint_extra,
+    eval_set,
+    fit_config,
+    latent_fid,
+    pairs,
+    previous_run,
+    step_generator,
+    wrap_ddp,
 )
 
 __all__ = ["GANTrainConfig", "train_gan", "load_gan"]
-
-EVAL_SPLITS = ("val", "test", "train")
 
 
 @dataclass
@@ -90,109 +94,7 @@ class GANTrainConfig:
         return self.critic_steps or (5 if gan.wgan else 1)
 
 
-# ---------------------------------------------------------------------------------------------------- data
-
-
-def pairs(cache: LatentCacheData, cond: str, split: str) -> tuple[np.ndarray, np.ndarray]:
-    """(conditions, clip index) of a split: text -> (caption embeddings (P, D), clips); action -> (ids (P,), clips)."""
-    if cond == "text":
-        keep = cache.splits[cache.caption_clip] == split
-        return cache.caption_embedding[keep], cache.caption_clip[keep]
-    clips = np.nonzero((cache.splits == split) & (cache.actions >= 0))[0]
-    return cache.actions[clips], clips
-
-
-def fit_config(gan: GANConfig, cache: LatentCacheData) -> tuple[GANConfig, list[str]]:
-    """The config with latent_dim, cond_dim / num_actions taken from the cache where they differ (and why)."""
-    changes, notes = {}, []
-    z = cache.mu.shape[1]
-    if gan.latent_dim != z:
-        changes["latent_dim"] = z
-        notes.append(f"latent_dim {gan.latent_dim} in the config, but the cache holds {z}-d latents: using {z}")
-    if gan.cond == "text":
-        if len(cache.caption_text) == 0:
-            raise ValueError("cond='text' but the cache holds no captions; use cond='action' or a captioned dataset")
-        width = cache.caption_embedding.shape[1]
-        if gan.cond_dim != width:
-            changes["cond_dim"] = width
-            notes.append(
-                f"cond_dim {gan.cond_dim} in the config, but the cache's text encoder "
-                f"{cache.text_encoder or '(unnamed)'} gives {width}-d embeddings: using {width}"
-            )
-    else:
-        if not (cache.actions >= 0).any():
-            raise ValueError("cond='action' but no clip in the cache has an action label; use cond='text'")
-        n = max(len(cache.action_names), int(cache.actions.max()) + 1)
-        if gan.num_actions != n:
-            changes["num_actions"] = n
-        if gan.num_actions not in (0, n):  # 0: "take it from the cache"
-            notes.append(f"num_actions {gan.num_actions} in the config, but the cache has {n} action classes: "
-                         f"using {n}")
-    return replace(gan, **changes), notes
-
-
-class LatentPairs:
-    """The train pairs on the device, latents standardised; ``batch`` draws a random batch of them."""
-
-    def __init__(self, cache: LatentCacheData, cond: str, device: torch.device, sample: bool) -> None:
-        c, clip = pairs(cache, cond, "train")
-        if len(clip) == 0:
-            raise ValueError(f"no training examples: the cache has no train-split clips with a {cond} condition")
-        self.cond = torch.as_tensor(c, device=device)  # (P, D) float or (P,) long
-        self.clip = torch.as_tensor(clip, dtype=torch.long, device=device)  # (P,)
-        self.mu = torch.as_tensor((cache.mu - cache.mean) / cache.std, device=device)  # (N, Z)
-        self.sigma = torch.as_tensor(np.exp(0.5 * cache.logvar) / cache.std, device=device)  # (N, Z)
-        self.sample = sample
-
-    def batch(self, b: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """(standardised latents (b, Z), conditions (b, ...)) of b random pairs."""
-        i = torch.randint(len(self.clip), (b,), generator=g, device=self.clip.device)
-        clip = self.clip[i]
-        z = self.mu[clip]
-        if self.sample:
-            z = z + self.sigma[clip] * torch.randn(z.shape, generator=g, device=z.device)
-        return z, self.cond[i]
-
-
-@dataclass
-class EvalSet:
-    """Conditions to generate from (fid_samples of them) and the real standardised latents they are compared with."""
-
-    split: str
-    cond: torch.Tensor
-    real: np.ndarray  # (R, Z)
-
-
-def eval_set(
-    cache: LatentCacheData, cond: str, num: int, seed: int, device: torch.device
-) -> tuple[EvalSet, str | None]:
-    """The first of val / test / train with examples, and a note when it is not val."""
-    for split in EVAL_SPLITS:
-        c, clip = pairs(cache, cond, split)
-        if len(clip):
-            break
-    order = np.random.default_rng(seed).permutation(len(clip))
-    pick = order[np.arange(num) % len(clip)]  # every condition, cycled, or a fixed random subset
-    real = ((cache.mu[clip] - cache.mean) / cache.std).astype(np.float32)
-    note = None if split == "val" else f"no validation {cond} conditions in the cache: latent FID on the {split} split"
-    return EvalSet(split, torch.as_tensor(c[pick], device=device), real), note
-
-
-def latent_fid(model: LatentGAN, ev: EvalSet, seed: int) -> float:
-    """FID between latents generated for the eval conditions (fixed noise) and the real ones, standardised space."""
-    if len(ev.real) < 2:
-        return math.nan
-    g = torch.Generator(model.device).manual_seed(seed)
-    fake = torch.cat([model.sample(c, generator=g) for c in ev.cond.split(4096)]).cpu().numpy()
-    return fid(fake, ev.real)
-
-
 # ---------------------------------------------------------------------------------------------------- steps
-
-
-def step_generator(g: torch.Generator, seed: int, rank: int, step: int) -> torch.Generator:
-    """Reseed ``g`` from (seed, rank, step): the step's randomness does not depend on the run's history."""
-    return g.manual_seed(int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0]))
 
 
 def d_step(model: LatentGAN, d_net, opt, data: LatentPairs, b: int, gp_weight: float, g: torch.Generator) -> dict:
@@ -227,35 +129,7 @@ def g_step(model: LatentGAN, g_net, opt, data: LatentPairs, b: int, g: torch.Gen
     return loss.detach()
 
 
-def _wrap(module: torch.nn.Module, d: Dist, device: torch.device) -> torch.nn.Module:
-    if not d.enabled:
-        return module
-    return DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None)
-
-
 # ---------------------------------------------------------------------------------------------------- loop
-
-
-def _previous_run(
-    out: Path, cache: LatentCacheData, gan: GANConfig, resume: bool, say
-) -> tuple[GANConfig, dict | None]:
-    """The run in ``out/last`` to continue: (its GAN config, {weights, state, step, fid}); never overwritten unasked."""
-    if not (out / "last" / CONFIG).exists():
-        if resume:
-            say(f"nothing to resume in {out}: starting a new run")
-        return gan, None
-    if not resume:
-        raise FileExistsError(f"{out} already holds a run (last/); pass resume=True to continue it, or another folder")
-    weights, meta = load_weights(out / "last", kind="gan")
-    if meta["extra"].get("vae_hash") != cache.vae_hash:
-        raise StaleCache(f"{out} was trained on latents of another VAE than the cache's; cannot resume on this cache")
-    saved = GANConfig(**meta["config"]["gan"])
-    if saved != gan:
-        say(f"resuming with the run's own GAN config ({saved.arch}), not the one given")
-    fid_value = meta["extra"].get("val_latent_fid")
-    run = {"weights": weights, "state": load_state(out / "last"), "step": int(meta["step"]),
-           "fid": math.nan if fid_value is None else float(fid_value)}
-    return saved, run
 
 
 def train_gan(
@@ -276,22 +150,16 @@ def train_gan(
     resume: continue from ``out/last`` at its step (an existing run is never overwritten without it).
     """
     gan, train = gan or GANConfig(), train or GANTrainConfig()
-    device = pick_device(device)
-    d = setup_distributed(device)
-    device = local_device(device, d)
-    try:
+
+    def body(device: torch.device, d: Dist) -> dict:
         with warnings.catch_warnings():
             # DDP notes that the double backward hands the critic's (1, H) output weight a gradient with other
             # (equivalent) strides than its bucket view: a performance remark about one tiny tensor.
             warnings.filterwarnings("ignore", message="Grad strides do not match bucket view strides")
-            result = _train(Path(cache), Path(out), gan, train, device, d, resume, progress,
-                            expect_vae_hash, expect_text_encoder)
-    except BaseException:
-        if d.enabled and dist.is_initialized():
-            dist.destroy_process_group()  # no barrier: the other ranks may be gone
-        raise
-    teardown_distributed(d)
-    return result
+            return _train(Path(cache), Path(out), gan, train, device, d, resume, progress,
+                          expect_vae_hash, expect_text_encoder)
+
+    return run_distributed(device, body)
 
 
 def _train(
@@ -317,7 +185,7 @@ def _train(
     for msg in fitted:
         say(msg)
 
-    gan, run = _previous_run(out, cache, gan, resume, say)
+    gan, run = previous_run(out, cache, gan, resume, say, kind="gan")
     step, best, last_fid = 0, math.inf, math.nan
     if run is not None:
         step, best, last_fid = run["step"], run["state"]["best_fid"], run["fid"]
@@ -339,7 +207,7 @@ def _train(
             for group in opt.param_groups:
                 group.update(hp)
         torch.set_rng_state(run["state"]["rng"])
-    g_net, d_net = _wrap(model.generator, d, device), _wrap(model.discriminator, d, device)
+    g_net, d_net = wrap_ddp(model.generator, d, device), wrap_ddp(model.discriminator, d, device)
 
     data = LatentPairs(cache, gan.cond, device, sample=train.real_latents == "sample")
     ev, note = eval_set(cache, gan.cond, train.fid_samples, train.seed, device)
@@ -351,11 +219,7 @@ def _train(
     config = {"gan": asdict(gan), "train": asdict(train)}
 
     def save(name: str, fid_value: float, with_state: bool) -> None:
-        extra = {
-            "latent_mean": cache.mean.tolist(), "latent_std": cache.std.tolist(), "action_names": cache.action_names,
-            "text_encoder": cache.text_encoder, "vae_hash": cache.vae_hash, "cache": str(cache_path.resolve()),
-            "val_latent_fid": None if math.isnan(fid_value) else fid_value, "eval_split": ev.split,
-        }
+        extra = checkpoint_extra(cache, cache_path, fid_value, ev.split)
         st = None
         if with_state:
             st = {"opt_g": opt_g.state_dict(), "opt_d": opt_d.state_dict(), "best_fid": best,

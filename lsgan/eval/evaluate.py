@@ -1,0 +1,274 @@
+"""The paper's evaluation tables (``lsgan evaluate``): text-to-motion, VAE reconstruction, action-to-motion.
+
+Text-to-motion follows T2M's protocol: every replication draws one (motion window, caption) pair per test
+window (lengths floored to a multiple of 4, one unit shorter with probability 1/3, as MLD), generates a
+motion for each caption at the real length, embeds everything with the evaluator and computes
+R-precision (groups of 32), MM-Dist, FID against the real motions of that draw, Diversity (300 pairs) and
+MultiModality (``mm_captions`` captions x ``mm_samples`` motions, 10 pairs). The Real row scores the drawn
+real motions themselves, its FID against a second, independent draw. Each figure is reported as the mean
+over replications with its 95% half-width (1.96 std / sqrt(n)).
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lsgan.eval import metrics as M
+from lsgan.io import atomic_file
+
+T2M_COLUMNS = ("r_precision_top1", "r_precision_top2", "r_precision_top3", "fid", "mm_dist", "diversity",
+               "multimodality")
+VAE_COLUMNS = ("ape_root", "ape_traj", "ape_mean_pose", "ape_mean_joints", "ave_root", "ave_traj",
+               "ave_mean_pose", "ave_mean_joints", "mpjpe", "fid")
+ACTION_COLUMNS = ("fid", "accuracy", "diversity", "multimodality")
+LABELS = {"r_precision_top1": "R-P top1 ↑", "r_precision_top2": "R-P top2 ↑", "r_precision_top3": "R-P top3 ↑",
+          "fid": "FID ↓", "mm_dist": "MM-Dist ↓", "diversity": "Diversity →", "multimodality": "MModality ↑",
+          "accuracy": "Accuracy ↑", "mpjpe": "MPJPE (m) ↓"}
+
+
+@dataclass
+class Table:
+    """Rows of per-replication values; ``summary`` gives (mean, 95% half-width) per cell."""
+
+    kind: str
+    columns: tuple[str, ...]
+    rows: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def add(self, row: str, column: str, value: float) -> None:
+        self.rows.setdefault(row, {}).setdefault(column, []).append(float(value))
+
+    def summary(self) -> dict[str, dict[str, tuple[float, float]]]:
+        return {r: {c: M.mean_ci(np.asarray(v)) for c, v in cols.items()} for r, cols in self.rows.items()}
+
+    def to_json(self) -> dict:
+        return {"kind": self.kind, "info": self.info,
+                "rows": {r: {c: {"mean": m, "ci95": h, "values": self.rows[r][c]} for c, (m, h) in cols.items()}
+                         for r, cols in self.summary().items()}}
+
+    def to_markdown(self) -> str:
+        head = "| | " + " | ".join(LABELS.get(c, c) for c in self.columns) + " |"
+        lines = [head, "| --- |" + " ---: |" * len(self.columns)]
+        for r, cols in self.summary().items():
+            cells = []
+            for c in self.columns:
+                if c not in cols:
+                    cells.append("–")
+                    continue
+                m, h = cols[c]
+                cells.append(f"{m:.3f}" + (f" ±{h:.3f}" if len(self.rows[r][c]) > 1 else ""))
+            lines.append(f"| {r} | " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+
+def write_table(table: Table, out: str | Path) -> tuple[Path, Path]:
+    """``out.md`` and ``out.json`` (atomic)."""
+    out = Path(out)
+    md, js = out.with_suffix(".md"), out.with_suffix(".json")
+    with atomic_file(md, "w", encoding="utf-8") as fh:
+        fh.write(table.to_markdown() + "\n")
+    with atomic_file(js, "w", encoding="utf-8") as fh:
+        json.dump(table.to_json(), fh, indent=1)
+    return md, js
+
+
+def _draw(dataset, seed: int) -> tuple[list[np.ndarray], list[str]]:
+    """One real draw: a window crop and a caption per test window (torch RNG seeded, as the loaders)."""
+    torch.manual_seed(seed)
+    motions, captions = [], []
+    for i in range(len(dataset)):
+        item = dataset[i]
+        motions.append(item["motion"].numpy())
+        captions.append(item["caption"])
+    return motions, captions
+
+
+def evaluate_text_to_motion(
+    models: dict[str, str | Path],
+    vae: str | Path,
+    data: str | Path,
+    evaluator: str | Path,
+    *,
+    split: str = "test",
+    replications: int = 20,
+    mm_captions: int = 100,
+    mm_samples: int = 30,
+    min_frames: int = 40,
+    max_frames: int = 196,
+    seed: int = 0,
+    device: str = "auto",
+    steps: int | None = None,
+    guidance: float | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Table:
+    """The text-to-motion table: a Real row and one row per model (GAN or diffusion checkpoint)."""
+    from lsgan.data.dataset import MotionDataset
+    from lsgan.generate import Request, generate
+    from lsgan.models.evaluator import load_evaluator
+    from lsgan.train.common import pick_device
+
+    dev = pick_device(device)
+    ev = load_evaluator(evaluator, device=dev)
+    dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False,
+                            require_captions=True)
+    if len(dataset) < 32:
+        raise ValueError(f"{data}: split {split!r} has {len(dataset)} captioned windows; R-precision needs >= 32")
+    table = Table("text-to-motion", T2M_COLUMNS, info={
+        "data": str(data), "split": split, "windows": len(dataset), "evaluator": ev.id, "vae": str(vae),
+        "replications": replications, "mm_captions": mm_captions, "mm_samples": mm_samples, "seed": seed,
+        "models": {k: str(v) for k, v in models.items()}})
+    gen_kwargs = {k: v for k, v in (("steps", steps), ("guidance", guidance)) if v is not None}
+    for r in range(replications):
+        rng = np.random.default_rng(seed + r)
+        real, captions = _draw(dataset, seed + 1000 * r)
+        second, _ = _draw(dataset, seed + 1000 * r + 1)
+        text_emb = ev.embed_texts(captions)
+        real_emb = ev.embed_motions(real)
+        rows = {"Real": real_emb}
+        for name, path in models.items():
+            if progress:
+                progress(f"replication {r + 1}/{replications}: {name}")
+            requests = [Request(text=c, frames=len(m)) for c, m in zip(captions, real)]
+            out = generate(path, vae, requests, num=1, seed=seed + r, device=str(dev), **gen_kwargs)
+            rows[name] = ev.embed_motions([m.features for m in out.motions])
+            if mm_captions and mm_samples:
+                pick = rng.choice(len(captions), size=min(mm_captions, len(captions)), replace=False)
+                mm_req = [requests[i] for i in pick]
+                mm = generate(path, vae, mm_req, num=mm_samples, seed=seed + r + 7919, device=str(dev), **gen_kwargs)
+                emb = ev.embed_motions([m.features for m in mm.motions]).reshape(len(pick), mm_samples, -1)
+                table.add(name, "multimodality", M.multimodality(emb, pairs=min(10, mm_samples), rng=rng))
+        second_emb = ev.embed_motions(second)
+        for name, emb in rows.items():
+            top = M.r_precision(text_emb, emb, top_k=3, rng=np.random.default_rng(seed + r))
+            for k in range(3):
+                table.add(name, f"r_precision_top{k + 1}", top[k])
+            table.add(name, "mm_dist", M.matching_score(text_emb, emb, rng=np.random.default_rng(seed + r)))
+            table.add(name, "fid", M.fid(second_emb if name == "Real" else real_emb, emb))
+            table.add(name, "diversity", M.diversity(emb, pairs=min(300, len(emb) // 2), rng=rng))
+    return table
+
+
+def evaluate_reconstruction(
+    vae: str | Path,
+    data: str | Path,
+    *,
+    evaluator: str | Path | None = None,
+    split: str = "test",
+    replications: int = 1,
+    min_frames: int = 40,
+    max_frames: int = 196,
+    seed: int = 0,
+    device: str = "auto",
+    batch_size: int = 128,
+) -> Table:
+    """The VAE table: APE/AVE (root, trajectory, mean pose, mean joints), MPJPE and (with an evaluator) FID
+    of reconstructions (encoder mean, decoder) against the real motions.
+
+    APE/AVE are computed as MLD's ComputeMetrics does, in MLD's units (metres x 0.64), so the numbers sit
+    beside the paper's VAE table; MPJPE is in metres on global joint positions."""
+    from lsgan.data.dataset import MotionDataset
+    from lsgan.data.features import recover_from_ric
+    from lsgan.models.vae import load_vae
+    from lsgan.train.common import pick_device
+
+    dev = pick_device(device)
+    model, meta = load_vae(vae, device=dev)
+    mean, std = np.asarray(meta["mean"], np.float32), np.asarray(meta["std"], np.float32)
+    ev = None
+    if evaluator is not None:
+        from lsgan.models.evaluator import load_evaluator
+
+        ev = load_evaluator(evaluator, device=dev)
+    dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False)
+    table = Table("vae-reconstruction", VAE_COLUMNS, info={"data": str(data), "split": split, "vae": str(vae),
+                                                          "windows": len(dataset), "replications": replications,
+                                                          "ape_ave_units": "MLD (metres x 0.64)"})
+    for r in range(replications):
+        real, _ = _draw(dataset, seed + 1000 * r)
+        recon: list[np.ndarray] = [None] * len(real)  # type: ignore[list-item]
+        order = sorted(range(len(real)), key=lambda i: len(real[i]))
+        with torch.no_grad():
+            for b in range(0, len(order), batch_size):
+                idx = order[b:b + batch_size]
+                n = max(len(real[i]) for i in idx)
+                x = np.zeros((len(idx), n, real[0].shape[1]), np.float32)
+                mask = np.zeros((len(idx), n), bool)
+                for j, i in enumerate(idx):
+                    x[j, :len(real[i])] = (real[i] - mean) / std
+                    mask[j, :len(real[i])] = True
+                xt, mt = torch.from_numpy(x).to(dev), torch.from_numpy(mask).to(dev)
+                mu, _ = model.encode(xt, mt)
+                out = model.decode(mu, mt).float().cpu().numpy()
+                for j, i in enumerate(idx):
+                    recon[i] = out[j, :len(real[i])] * std + mean
+        gt_joints = [recover_from_ric(m) for m in real]
+        rec_joints = [recover_from_ric(m.astype(np.float32)) for m in recon]
+        for k, v in M.ape_ave(rec_joints, gt_joints, unit_scale=M.MLD_UNIT_SCALE).items():
+            table.add("VAE", k, v)
+        table.add("VAE", "mpjpe", M.mpjpe(rec_joints, gt_joints))
+        if ev is not None:
+            table.add("VAE", "fid", M.fid(ev.embed_motions(real), ev.embed_motions(recon)))
+    return table
+
+
+def evaluate_action_to_motion(
+    models: dict[str, str | Path],
+    vae: str | Path,
+    data: str | Path,
+    classifier: str | Path,
+    *,
+    split: str = "test",
+    replications: int = 20,
+    samples: int = 1000,
+    seed: int = 0,
+    device: str = "auto",
+    min_frames: int = 16,
+    max_frames: int = 196,
+    steps: int | None = None,
+    guidance: float | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Table:
+    """HumanAct12-style table: FID (classifier's 30-d features), accuracy, diversity (200 pairs) and
+    multimodality (20 pairs per class), for ``samples`` motions with labels and lengths drawn from the real
+    test windows; a Real row from the real windows themselves."""
+    from lsgan.data.dataset import MotionDataset
+    from lsgan.data.features import recover_from_ric
+    from lsgan.generate import Request, generate
+    from lsgan.models.evaluator import load_action_classifier
+    from lsgan.train.common import pick_device
+
+    dev = pick_device(device)
+    clf = load_action_classifier(classifier, device=dev)
+    dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False)
+    labels_all = np.array([int(dataset.actions[w.shard][w.clip]) for w in dataset.windows])
+    if (labels_all < 0).any():
+        raise ValueError(f"{data}: some {split} clips have no action label; the action table needs labelled clips")
+    names = dataset.action_names
+    table = Table("action-to-motion", ACTION_COLUMNS, info={"data": str(data), "split": split, "samples": samples,
+                                                           "replications": replications, "actions": names})
+    gen_kwargs = {k: v for k, v in (("steps", steps), ("guidance", guidance)) if v is not None}
+    for r in range(replications):
+        rng = np.random.default_rng(seed + r)
+        real, _ = _draw(dataset, seed + 1000 * r)
+        real_joints = [recover_from_ric(m) for m in real]
+        real_feat = clf.features(real_joints)
+        pick = rng.choice(len(real), size=samples, replace=samples > len(real))
+        rows = {"Real": (real_feat, labels_all, clf.predict(real_joints))}
+        for name, path in models.items():
+            if progress:
+                progress(f"replication {r + 1}/{replications}: {name}")
+            requests = [Request(action=names[labels_all[i]], frames=len(real[i])) for i in pick]
+            out = generate(path, vae, requests, num=1, seed=seed + r, device=str(dev), **gen_kwargs)
+            joints = [m.joints for m in out.motions]
+            rows[name] = (clf.features(joints), labels_all[pick], clf.predict(joints))
+        for name, (feat, labels, pred) in rows.items():
+            table.add(name, "fid", M.fid(real_feat, feat))
+            table.add(name, "accuracy", M.accuracy(pred, labels))
+            table.add(name, "diversity", M.action_diversity(feat, pairs=min(200, len(feat) // 2), rng=rng))
+            table.add(name, "multimodality", M.action_multimodality(feat, labels, pairs=20, rng=rng))
+    return table
