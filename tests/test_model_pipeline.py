@@ -98,3 +98,30 @@ def test_help_of_model_commands_has_examples(run):
     for cmd in ("train-vae", "encode-latents", "train-gan", "generate"):
         out = lsgan(cmd, "--help", cwd=run)
         assert out.returncode == 0 and "Examples:" in out.stdout
+
+
+def test_generated_motion_exports_validate_and_reimport(run):
+    """A generated motion as a user exports it: GLB (Khronos validator) and BVH (our importer) agree."""
+    from gltf_reader import frame_count, node_index, parse, validate, world_matrices
+
+    from lsgan.data.bvh import forward_kinematics, read_bvh
+    from lsgan.data.skeleton import JOINT_NAMES
+
+    out = lsgan("generate", "--gan", "gan", "--vae", "vae", "--text", "a person waves", "--frames", 40, "-o", "gen",
+                cwd=run)
+    assert out.returncode == 0, out.stderr
+    for fmt in ("glb", "bvh"):
+        done = lsgan("export", f"--{fmt}", "gen", "-o", f"gen-{fmt}", cwd=run)
+        assert done.returncode == 0, done.stderr
+    (glb,), (bvh_path,) = sorted((run / "gen-glb").glob("*.glb")), sorted((run / "gen-bvh").glob("*.bvh"))
+    report = validate(glb)
+    assert report["errors"] == 0 and report["warnings"] == 0, report["messages"]
+    doc, blob = parse(glb.read_bytes())
+    index = [node_index(doc)[n] for n in JOINT_NAMES]
+    from_glb = np.stack([world_matrices(doc, blob, t)[index, :3, 3] for t in range(frame_count(doc, blob))])
+    bvh = read_bvh(bvh_path)
+    from_bvh = forward_kinematics(bvh)[:, [bvh.names.index(n) for n in JOINT_NAMES]] / 100.0
+    assert np.abs(from_bvh - from_glb).max() < 1e-3  # both files pose the same rigid skeleton
+    generated = np.load(next((run / "gen").glob("*_joints.npy")))
+    assert from_glb.shape == generated.shape
+    assert np.abs(from_glb[:, 0] - generated[:, 0]).max() < 1e-3  # the root path is kept exactly
