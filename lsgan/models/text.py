@@ -81,14 +81,18 @@ class TextEncoder(ABC):
             raise TypeError(f"encode() takes strings only; got {sorted(set(bad))}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        out = torch.empty(len(texts), self.dim, dtype=torch.float32)
-        order = sorted(range(len(texts)), key=lambda i: (-len(texts[i]), i))
+        unique = list(dict.fromkeys(texts))  # repeated captions (evaluation draws) are embedded once
+        out = torch.empty(len(unique), self.dim, dtype=torch.float32)
+        order = sorted(range(len(unique)), key=lambda i: (-len(unique[i]), i))
         with torch.inference_mode():
             for start in range(0, len(order), batch_size):
                 idx = order[start:start + batch_size]
-                emb = self._encode_batch([texts[i] for i in idx])
+                emb = self._encode_batch([unique[i] for i in idx])
                 out[torch.tensor(idx)] = emb.detach().to(device="cpu", dtype=torch.float32)
-        return out
+        if len(unique) == len(texts):
+            return out
+        row = {t: i for i, t in enumerate(unique)}
+        return out[torch.tensor([row[t] for t in texts])]
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(id={self.id!r}, dim={self.dim}, device={str(self.device)!r})"
