@@ -47,6 +47,7 @@ Examples:
   lsgan demo -o my_demo
   LSGAN_DEMO_SCALE=0.05 lsgan demo -o tiny    # about a minute: steps, clips and evaluation draws x 0.05
   lsgan demo --scale 0.2 --fresh              # start over in demo_out at another scale
+  lsgan demo --threads 1                      # on a machine that is busy with other work
 """)
 @click.option("-o", "--output", default="demo_out", show_default=True, type=click.Path(file_okay=False),
               help="Folder for everything the demo makes; run again to continue or reuse it.")
@@ -55,8 +56,11 @@ Examples:
                    "and MultiModality draws by FACTOR, e.g. 0.05 for a one-minute run. Default: the environment "
                    "variable LSGAN_DEMO_SCALE, else 1.")
 @click.option("--fresh", is_flag=True, help="Remove an earlier demo in the output folder first (its own files only).")
+@click.option("--threads", type=click.IntRange(1), default=None,
+              help="Torch CPU threads (default: one per core, or OMP_NUM_THREADS). Use 1 when other work is "
+                   "running on the machine: competing threads can make training many times slower.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
-def demo(output, scale, fresh, device) -> None:
+def demo(output, scale, fresh, threads, device) -> None:
     """Run the whole pipeline on built-in synthetic data: preprocess, train a VAE, a deep-wgan-gp GAN and an
     evaluator, evaluate (T2M metrics, Real and GAN rows), generate five prompts and export GLB + GIF.
 
@@ -68,7 +72,7 @@ def demo(output, scale, fresh, device) -> None:
     from lsgan.train.common import TrainingDiverged
 
     try:
-        result = run_demo(output, scale=scale, fresh=fresh, device=device)
+        result = run_demo(output, scale=scale, fresh=fresh, device=device, threads=threads)
     except DemoInterrupted as e:
         click.echo(f"\ninterrupted during [{e.index}/8] {e.stage}: finished stages (and the last checkpoint of a "
                    f"training) are kept in {output}; run `lsgan demo -o {output}` again to continue.", err=True)

@@ -20,9 +20,9 @@ RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
     """A recipe as a dict of sections. A bare name ('demo') is looked up in the project's ``recipes/``."""
     p = Path(path)
-    if not p.exists() and not p.suffix and (RECIPES / f"{p}.yaml").exists():
+    if not p.is_file() and not p.suffix and (RECIPES / f"{p}.yaml").exists():  # a folder named 'demo' is no recipe
         p = RECIPES / f"{p}.yaml"
-    if not p.exists():
+    if not p.is_file():
         raise FileNotFoundError(f"recipe {path} not found (give a YAML file, or a name from {RECIPES})")
     data = yaml.safe_load(p.read_text()) or {}
     if not isinstance(data, dict):

@@ -123,6 +123,8 @@ def evaluate_text_to_motion(
         "replications": replications, "mm_captions": mm_captions, "mm_samples": mm_samples, "seed": seed,
         "models": {k: str(v) for k, v in models.items()}})
     gen_kwargs = {k: v for k, v in (("steps", steps), ("guidance", guidance)) if v is not None}
+    for name in ("Real", *models):  # row order: Real first (MultiModality fills the model rows earlier)
+        table.rows[name] = {}
     for r in range(replications):
         rng = np.random.default_rng(seed + r)
         real, captions = _draw(dataset, seed + 1000 * r)
