@@ -23,7 +23,7 @@ def main() -> None:
     """lsgan: text- and action-to-motion synthesis with a GAN in the latent space of a motion VAE.
 
     \b
-    Everything at once, on built-in synthetic data (about 7 minutes on a 2-core CPU):
+    Everything at once, on built-in synthetic data (about 6 minutes on a 2-core CPU):
       lsgan demo
     \b
     Pipeline:
@@ -43,7 +43,7 @@ Stages (each is skipped when its output is complete; an interrupted training res
   [5/8] train-evaluator  [6/8] evaluate  [7/8] generate  [8/8] export (GLB + GIF)
 \b
 Examples:
-  lsgan demo                                  # -> demo_out/ (about 7 minutes on a 2-core CPU)
+  lsgan demo                                  # -> demo_out/ (about 6 minutes on a 2-core CPU)
   lsgan demo -o my_demo
   LSGAN_DEMO_SCALE=0.05 lsgan demo -o tiny    # about a minute: steps, clips and evaluation draws x 0.05
   lsgan demo --scale 0.2 --fresh              # start over in demo_out at another scale

@@ -19,8 +19,8 @@ raises :class:`DemoInterrupted` (a KeyboardInterrupt) naming the stage.
 
 Size: ``scale`` (default: ``$LSGAN_DEMO_SCALE``, else 1) multiplies every step count, the number of clips and
 the evaluation's replications and MultiModality draws (with floors that keep each stage meaningful: at least
-400 clips, so that the test split holds the 32 windows R-precision needs). Scale 1 is sized for about 7
-minutes on an idle 2-core CPU; ``LSGAN_DEMO_SCALE=0.05`` runs the whole thing in about a minute, for tests.
+400 clips, so that the test split holds the 32 windows R-precision needs). Scale 1 takes 5.6 minutes on an
+idle 2-core CPU (7.8 with one thread); ``LSGAN_DEMO_SCALE=0.05`` runs the whole thing in about a minute, for tests.
 The settings of a run are kept in ``OUT/demo.json``; a folder made at another scale is refused (``fresh=True``
 starts over).
 """

@@ -103,7 +103,7 @@ def test_readme_setup_in_a_fresh_clone(tmp_path):
     if top.returncode != 0 or Path(top.stdout.strip()).resolve() != ROOT:
         pytest.skip(f"{ROOT} is not a git checkout: nothing to clone")
     dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True).stdout.strip()
+                           capture_output=True, text=True).stdout.rstrip()
     if dirty:
         warnings.warn(f"uncommitted changes are not in the clone (it tests HEAD):\n{dirty}", stacklevel=1)
 
