@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -10,16 +11,78 @@ import click
 from lsgan import __version__
 
 SOURCES = ("synthetic", "bvh", "humanml3d", "joints", "amass", "humanact12")
+INTERRUPTED = 130  # the shell's code for a process stopped by Ctrl-C (128 + SIGINT)
 
 
 def _fail(message: str) -> None:
+    """Print ``error: MESSAGE`` and exit 1; under --debug re-raise the exception being handled instead."""
+    if _debugging() and sys.exc_info()[1] is not None:
+        raise sys.exc_info()[1]
+    _close_progress_bars()
     click.echo(f"error: {message}", err=True)
     sys.exit(1)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+def _close_progress_bars() -> None:
+    """Close unfinished tqdm bars, so the error line starts a line of its own."""
+    from tqdm import tqdm
+
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
+
+
+def _stopped(hint: str) -> None:
+    """Ctrl-C: say what is kept and how to go on, and exit 130."""
+    click.echo(f"\ninterrupted: {hint}", err=True)
+    sys.exit(INTERRUPTED)
+
+
+def _debugging() -> bool:
+    return os.environ.get("LSGAN_DEBUG", "") not in ("", "0")
+
+
+def describe(error: BaseException) -> str:
+    """An exception as the one line ``error:`` prints: the file first, then the problem."""
+    if isinstance(error, OSError) and error.filename is not None:
+        return f"{error.filename}: {(error.strerror or str(error)).lower()}"
+    if isinstance(error, (ValueError, LookupError, OSError, RuntimeError)) and str(error):
+        return str(error)
+    return (f"internal error: {type(error).__name__}: {error} (please report it; LSGAN_DEBUG=1 or --debug "
+            "shows the traceback)")
+
+
+class LsganGroup(click.Group):
+    """Runs a command and turns every failure into one ``error: FILE: problem`` line and a non-zero exit.
+
+    Usage errors exit 2, other errors 1, Ctrl-C 130; tracebacks only with ``--debug`` or ``LSGAN_DEBUG=1``.
+    """
+
+    def main(self, *args, **kwargs):
+        kwargs["standalone_mode"] = False
+        try:
+            code = super().main(*args, **kwargs)
+        except click.exceptions.Exit as e:
+            code = e.exit_code
+        except click.ClickException as e:
+            hint = f" (see 'lsgan {e.ctx.info_name} --help')" if getattr(e, "ctx", None) is not None else ""
+            click.echo(f"error: {e.format_message()}{hint}", err=True)
+            code = e.exit_code
+        except (click.Abort, KeyboardInterrupt):
+            click.echo("\ninterrupted", err=True)
+            code = INTERRUPTED
+        except Exception as e:  # noqa: BLE001 - the promise: one line, no traceback unless asked
+            if _debugging():
+                raise
+            _close_progress_bars()
+            click.echo(f"error: {describe(e)}", err=True)
+            code = 1
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+@click.group(cls=LsganGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="lsgan")
-def main() -> None:
+@click.option("--debug", is_flag=True, help="Show Python tracebacks on errors (also LSGAN_DEBUG=1).")
+def main(debug: bool) -> None:
     """lsgan: text- and action-to-motion synthesis with a GAN in the latent space of a motion VAE.
 
     \b
@@ -34,7 +97,13 @@ def main() -> None:
       lsgan train-gan --cache cache.h5 --recipe demo --out runs/gan
       lsgan train-diffusion --cache cache.h5 --recipe demo --out runs/diffusion   # the MLD baseline
       lsgan generate --gan runs/gan --vae runs/vae --text "a person walks forward" -o out/
+    \b
+    Errors are one line on stderr (`error: FILE: problem`) with exit code 1 (2 for a wrong option, 130 after
+    Ctrl-C); `lsgan --debug COMMAND` (or LSGAN_DEBUG=1) shows the traceback. No command replaces a file it
+    did not write: an existing output needs --force, which replaces only lsgan's own files.
     """
+    if debug:
+        os.environ["LSGAN_DEBUG"] = "1"
 
 
 @main.command(epilog="""\b
@@ -150,18 +219,27 @@ Examples:
 @click.option("--mirror/--no-mirror", default=None, help="Add mirrored copies (default: per source; on for bvh, amass).")
 @click.option("--min-frames", default=10, show_default=True, help="Skip clips shorter than this (20 fps frames).")
 @click.option("--workers", default=1, show_default=True, help="Worker processes.")
-@click.option("--resume", is_flag=True, help="Continue an interrupted run from its OUTPUT.parts/ folder.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run from its OUTPUT.parts/ folder (finished chunks "
+              "are reused only when their input files, by SHA-256, and the options are unchanged).")
 @click.option("--strict", is_flag=True, help="Stop at the first bad clip instead of skipping it.")
+@click.option("--force", is_flag=True, help="Replace an existing OUTPUT that lsgan wrote (never another file).")
 @click.option("--report", type=click.Path(), help="Where to write the JSON report (default OUTPUT.report.json).")
 def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, texts, body_models, index_csv, device, up_axis,
-               num_clips, seed, mirror, min_frames, workers, resume, strict, report) -> None:
-    """Turn mocap or a dataset into HumanML3D features in an HDF5 shard (or a HumanML3D folder)."""
+               num_clips, seed, mirror, min_frames, workers, resume, strict, force, report) -> None:
+    """Turn mocap or a dataset into HumanML3D features in an HDF5 shard (or a HumanML3D folder).
+
+    Bad clips are skipped and listed, grouped by reason, with every one in OUTPUT.report.json (--strict stops
+    at the first). An existing OUTPUT is refused unless --force; an output that holds the inputs always is.
+    Ctrl-C keeps the finished chunks: run again with --resume (exit code 130).
+    """
     from tqdm import tqdm
 
     from lsgan.data.clip import ClipError
     from lsgan.data.preprocess import PreprocessError, print_skips
     from lsgan.data.preprocess import preprocess as run
 
+    if resume and force:
+        raise click.UsageError("--resume continues the run that --force would start over: give one of them")
     src = make_source(source_name, path, preset=preset, joint_map=joint_map, scale=scale, fps=fps, texts=texts,
                       body_models=body_models, index_csv=index_csv, device=device, up_axis=up_axis, num_clips=num_clips, seed=seed)
     bar = tqdm(total=0, unit="file", desc=f"preprocess {source_name}", file=sys.stderr, disable=None)
@@ -173,10 +251,10 @@ def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, te
 
     try:
         result = run(src, output, format=fmt, mirror=mirror, min_frames=min_frames, workers=workers,
-                     resume=resume, strict=strict, report=report, on_progress=progress)
+                     resume=resume, strict=strict, force=force, report=report, on_progress=progress)
     except KeyboardInterrupt:
         bar.close()
-        _fail(f"interrupted; finished chunks are kept in {output}.parts/ - run again with --resume to continue")
+        _stopped(f"finished chunks are kept in {output}.parts/; run the same command with --resume to continue")
     except (PreprocessError, ClipError, ValueError) as e:
         bar.close()
         _fail(str(e))
@@ -233,7 +311,8 @@ Examples:
 @click.option("--seed", type=int, help="Override the recipe's seed.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
-def train_vae_cmd(data, recipe, out, max_steps, batch_size, seed, device, resume) -> None:
+@click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
+def train_vae_cmd(data, recipe, out, max_steps, batch_size, seed, device, resume, force) -> None:
     """Train the motion VAE (MLD's skip-transformer VAE) on the train split of one or more shards."""
     from lsgan.models.vae import VAEConfig
     from lsgan.recipes import build, section
@@ -245,7 +324,9 @@ def train_vae_cmd(data, recipe, out, max_steps, batch_size, seed, device, resume
         model = build(VAEConfig, section(r, "model"), "vae.model")
         train = build(VAETrainConfig, _overrides(section(r, "train"), max_steps=max_steps, batch_size=batch_size,
                                                 seed=seed), "vae.train")
-        result = train_vae(list(data), out, model=model, train=train, device=device, resume=resume)
+        result = train_vae(list(data), out, model=model, train=train, device=device, resume=resume, force=force)
+    except KeyboardInterrupt:
+        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         _fail(str(e))
     click.echo(json.dumps(result), err=True)
@@ -267,8 +348,9 @@ Examples:
 @click.option("--max-frames", default=None, type=int, help="Longest window (default: the VAE's training setting).")
 @click.option("--batch-size", default=64, show_default=True)
 @click.option("--device", default="auto", show_default=True)
+@click.option("--force", is_flag=True, help="Replace an existing OUTPUT that lsgan wrote (never another file).")
 def encode_latents_cmd(data, vae, output, text_encoder, recipe, text_encoder_path, min_frames, max_frames, batch_size,
-                       device) -> None:
+                       device, force) -> None:
     """Cache the VAE latent (mean, log-variance) of every window and the embedding of every caption."""
     from lsgan.models.cache import encode_latents
     from lsgan.models.checkpoint import read_meta
@@ -280,6 +362,7 @@ def encode_latents_cmd(data, vae, output, text_encoder, recipe, text_encoder_pat
             list(data), vae, output, text_encoder=None if text_encoder == "none" else text_encoder,
             text_encoder_path=text_encoder_path, min_frames=min_frames or train_cfg.get("min_frames", 40),
             max_frames=max_frames or train_cfg.get("max_frames", 196), batch_size=batch_size, device=device,
+            force=force,
         )
     except Exception as e:  # noqa: BLE001 - every failure here is the user's input: report it plainly
         _fail(f"{type(e).__name__}: {e}" if not isinstance(e, (ValueError, FileNotFoundError)) else str(e))
@@ -304,14 +387,14 @@ Examples:
 @click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded.")
 @click.option("--device", default="auto", show_default=True)
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
-def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_stale, device, resume) -> None:
+@click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
+def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_stale, device, resume, force) -> None:
     """Train a latent GAN from the cache alone (the VAE is never run while training).
 
     The cache is refused when its VAE checkpoint has changed since it was encoded (a stale cache), so a
     GAN never learns latents its decoder does not understand.
     """
-    from lsgan.models.cache import read_cache_attrs
-    from lsgan.models.checkpoint import weights_hash
+    from lsgan.models.cache import check_cache_vae
     from lsgan.models.gan import GANConfig
     from lsgan.recipes import build, section
     from lsgan.train.common import TrainingDiverged
@@ -319,14 +402,13 @@ def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_st
 
     r = section(_recipe(recipe), "gan")
     try:
-        expect = None
-        if not allow_stale:
-            vae_path = vae or read_cache_attrs(cache).get("vae_path")
-            if vae_path and Path(vae_path).exists():
-                expect = weights_hash(vae_path)
+        expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
         gan = build(GANConfig, _overrides(section(r, "model"), arch=arch, cond=cond), "gan.model")
         train = build(GANTrainConfig, _overrides(section(r, "train"), max_steps=max_steps, seed=seed), "gan.train")
-        result = train_gan(cache, out, gan=gan, train=train, device=device, resume=resume, expect_vae_hash=expect)
+        result = train_gan(cache, out, gan=gan, train=train, device=device, resume=resume, force=force,
+                           expect_vae_hash=expect)
+    except KeyboardInterrupt:
+        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         _fail(str(e))
     click.echo(json.dumps(result, default=str), err=True)
@@ -353,8 +435,9 @@ Examples:
 @click.option("--text-encoder-path", type=click.Path(exists=True), help="text: local folder of the sentence encoder's weights.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
 def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, text_encoder, text_encoder_path, device,
-                        resume) -> None:
+                        resume, force) -> None:
     """Train an evaluator for `lsgan evaluate` on your data and report held-out figures.
 
     \b
@@ -388,12 +471,14 @@ def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, te
             result = train_evaluator(
                 list(data), out, config=build(EvaluatorConfig, model_values, "evaluator.text.model"),
                 train_config=build(EvaluatorTrainConfig, train_values, "evaluator.text.train"), device=device,
-                resume=resume, text_encoder_path=text_encoder_path)
+                resume=resume, force=force, text_encoder_path=text_encoder_path)
         else:
             result = train_action_classifier(
                 list(data), out, config=build(ActionClassifierConfig, section(r, "model"), "evaluator.action.model"),
                 train_config=build(ActionTrainConfig, train_values, "evaluator.action.train"), device=device,
-                resume=resume)
+                resume=resume, force=force)
+    except KeyboardInterrupt:
+        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         _fail(str(e))
     except Exception as e:  # noqa: BLE001 - e.g. a text encoder whose weights are absent: say so plainly
@@ -429,14 +514,14 @@ Examples:
 @click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded.")
 @click.option("--device", default="auto", show_default=True)
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
-def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_stale, device, resume) -> None:
+@click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
+def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_stale, device, resume, force) -> None:
     """Train the latent-diffusion baseline (MLD's denoiser, DDIM, classifier-free guidance) on the same cache.
 
     Like train-gan it reads the cache alone and refuses one whose VAE has changed since it was encoded;
     `lsgan generate --gan RUN` and `lsgan evaluate` take the result wherever they take a GAN.
     """
-    from lsgan.models.cache import read_cache_attrs
-    from lsgan.models.checkpoint import weights_hash
+    from lsgan.models.cache import check_cache_vae
     from lsgan.models.diffusion import DiffusionConfig
     from lsgan.recipes import build, section
     from lsgan.train.common import TrainingDiverged
@@ -444,16 +529,14 @@ def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_st
 
     r = section(_recipe(recipe), "diffusion")
     try:
-        expect = None
-        if not allow_stale:
-            vae_path = vae or read_cache_attrs(cache).get("vae_path")
-            if vae_path and Path(vae_path).exists():
-                expect = weights_hash(vae_path)
+        expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
         model = build(DiffusionConfig, _overrides(section(r, "model"), cond=cond), "diffusion.model")
         train = build(DiffusionTrainConfig, _overrides(section(r, "train"), max_steps=max_steps, seed=seed),
                       "diffusion.train")
-        result = train_diffusion(cache, out, diffusion=model, train=train, device=device, resume=resume,
+        result = train_diffusion(cache, out, diffusion=model, train=train, device=device, resume=resume, force=force,
                                  expect_vae_hash=expect)
+    except KeyboardInterrupt:
+        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         _fail(str(e))
     click.echo(json.dumps(result, default=str), err=True)
@@ -483,11 +566,13 @@ Examples:
 @click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps (default: the checkpoint's, 50 in MLD).")
 @click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
+@click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
+              "wrote there (never other files).")
 def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path, batch_size, device, steps,
-             guidance, output) -> None:
+             guidance, output, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
-    from lsgan.generate import Request, read_prompts, write_generation
+    from lsgan.generate import Request, claim_generation, read_prompts, write_generation
     from lsgan.generate import generate as run
 
     if frames is not None and seconds is not None:
@@ -501,12 +586,13 @@ def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text
     if not requests:
         raise click.UsageError("give --text, --prompts or --action")
     try:
+        claim_generation(output, gan, vae, *([prompts] if prompts else []), force=force)
         result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
                      batch_size=batch_size, steps=steps, guidance=guidance)
         if result.kind == "gan" and (steps is not None or guidance is not None):
             click.echo(f"note: --steps/--guidance ignored: {gan} is a GAN (they set a diffusion model's sampling)",
                        err=True)
-        manifest = write_generation(result, output)
+        manifest = write_generation(result, output, force=force)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
     t = result.timings_s
@@ -543,8 +629,9 @@ Examples:
               help="--body-model: L-BFGS iterations of the batched pose refinement.")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output file, or folder when INPUT holds several motions.")
+@click.option("--force", is_flag=True, help="Replace existing outputs that lsgan wrote (never other files).")
 def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, model_type, fit_iterations, fps,
-           output) -> None:
+           output, force) -> None:
     """Export motions (joints .npy, features .npy or a generate folder) for Blender, three.js and game engines."""
     from lsgan.data.body_model import BodyModelError
     from lsgan.data.clip import ClipError
@@ -558,7 +645,7 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
     fmt = "glb" if as_glb else "bvh" if as_bvh else "gif" if as_gif else "mp4"
     try:
         done = export_motions(input, output, fmt=fmt, fps=fps, title=title, body_model=body_model, gender=gender,
-                              model_type=model_type, fit_iterations=fit_iterations)
+                              model_type=model_type, fit_iterations=fit_iterations, force=force)
     except (ValueError, ClipError, BodyModelError, EncodeError) as e:
         _fail(str(e))
     for item in done:
@@ -598,11 +685,12 @@ Examples:
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="auto", show_default=True)
 @click.option("-o", "--output", required=True, type=click.Path(), help="Writes OUTPUT.md and OUTPUT.json.")
+@click.option("--force", is_flag=True, help="Replace OUTPUT.md/.json that lsgan wrote (never other files).")
 def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_samples, min_frames, max_frames,
-             samples, steps, guidance, vae_only, action_table, seed, device, output) -> None:
+             samples, steps, guidance, vae_only, action_table, seed, device, output, force) -> None:
     """The paper's tables: Real row, model rows, 95% confidence half-widths (markdown + JSON)."""
-    from lsgan.eval.evaluate import (evaluate_action_to_motion, evaluate_reconstruction, evaluate_text_to_motion,
-                                     write_table)
+    from lsgan.eval.evaluate import (claim_table, evaluate_action_to_motion, evaluate_reconstruction,
+                                     evaluate_text_to_motion, write_table)
 
     named = {}
     for spec in models:
@@ -617,6 +705,7 @@ def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_
     if not vae_only and evaluator is None:
         raise click.UsageError("--evaluator is required (train one with `lsgan train-evaluator`)")
     progress = lambda msg: click.echo(msg, err=True)  # noqa: E731
+    claim_table(output, force=force)  # before the minutes of evaluation, not after
     try:
         if vae_only:
             table = evaluate_reconstruction(vae, data, evaluator=evaluator, split=split, replications=replications or 1,
@@ -632,7 +721,7 @@ def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_
                                             guidance=guidance, progress=progress)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
-    md, js = write_table(table, output)
+    md, js = write_table(table, output, force=force)
     click.echo(table.to_markdown())
     click.echo(f"wrote {md} and {js}", err=True)
 
@@ -652,11 +741,15 @@ Examples:
 @click.option("--repeats", default=3, show_default=True, help="Timed runs per figure (median).")
 @click.option("--device", "devices", multiple=True, help="cpu, cuda (default: cpu, and cuda when present).")
 @click.option("--json", "json_out", type=click.Path(), help="Write the rows as JSON.")
-def bench(gans, diffusion, vae, steps, guidance, frames, repeats, devices, json_out) -> None:
+@click.option("--force", is_flag=True, help="Replace a --json file that lsgan wrote (never another file).")
+def bench(gans, diffusion, vae, steps, guidance, frames, repeats, devices, json_out, force) -> None:
     """FLOPs for 2048 clips and measured time per motion (b1, b256) for each generator and the denoiser."""
     from lsgan.eval.bench import bench_samplers, format_table, rows_as_dicts, run_bench
     from lsgan.io import atomic_file
+    from lsgan.outputs import claim_file
 
+    if json_out:
+        claim_file(json_out, force=force)
     try:
         samplers, decoder = bench_samplers(gans=gans, diffusion=diffusion, vae=vae, steps=steps, guidance=guidance)
         rows = run_bench(samplers, vae=decoder, devices=list(devices) or None, frames=frames, repeats=repeats,
@@ -683,13 +776,14 @@ Examples:
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="auto", show_default=True)
 @click.option("-o", "--output", required=True, type=click.Path(), help="PNG file.")
-def plot_latents_cmd(cache, model, split, per_class, steps, guidance, seed, device, output) -> None:
+@click.option("--force", is_flag=True, help="Replace an existing PNG that lsgan wrote (never another file).")
+def plot_latents_cmd(cache, model, split, per_class, steps, guidance, seed, device, output, force) -> None:
     """t-SNE of real and generated latents coloured by action (the paper's Figure 4), as PNG."""
     from lsgan.eval.plot import plot_latents
 
     try:
         path = plot_latents(cache, model, output, split=split, per_class=per_class, seed=seed, device=device,
-                            steps=steps, guidance=guidance)
+                            steps=steps, guidance=guidance, force=force)
     except ValueError as e:
         _fail(str(e))
     click.echo(f"wrote {path}", err=True)

@@ -479,7 +479,7 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
         finally:
             bar.close()
         table.info["reduced"] = settings.reduced
-        write_table(table, paths["metrics"])
+        write_table(table, paths["metrics"], force=True)
         top3 = table.summary()[gan_name]["r_precision_top3"][0]
         return "ran", {"note": f"{gan_name} R-precision top-3 {top3:.3f} (chance 0.094)"}
 

@@ -18,8 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lsgan import outputs
 from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS
+from lsgan.io import atomic_file
 
 
 @dataclass
@@ -248,17 +250,22 @@ def _slug(text: str, limit: int = 40) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:limit] or "motion"
 
 
-def write_generation(result: Generation, out: str | os.PathLike) -> Path:
-    """features ``.npy``, joints ``.npy`` (T,22,3) per motion and ``manifest.json``; returns the manifest path."""
+def write_generation(result: Generation, out: str | os.PathLike, *, force: bool = False) -> Path:
+    """features ``.npy``, joints ``.npy`` (T,22,3) per motion and ``manifest.json``; returns the manifest path.
+
+    An existing ``out`` is refused unless ``force``, which first clears the files an earlier lsgan run wrote
+    there (and only those).
+    """
     from lsgan.models.checkpoint import resolve, weights_hash
 
-    out = Path(out)
+    out = claim_generation(out, result.gan, result.vae, force=force)
     out.mkdir(parents=True, exist_ok=True)
     entries = []
     for i, m in enumerate(result.motions):
         stem = f"{i:03d}_{_slug(m.request.text or m.request.action or 'motion')}"
-        np.save(out / f"{stem}_features.npy", m.features)
-        np.save(out / f"{stem}_joints.npy", m.joints)
+        for suffix, array in (("features", m.features), ("joints", m.joints)):
+            with atomic_file(outputs.claim_file(out / f"{stem}_{suffix}.npy", force=True)) as fh:
+                np.save(fh, array)
         entries.append({
             "index": i, "text": m.request.text, "action": m.request.action, "frames": int(len(m.features)),
             "seconds": len(m.features) / FPS, "sample": m.sample, "features": f"{stem}_features.npy",
@@ -275,6 +282,12 @@ def write_generation(result: Generation, out: str | os.PathLike) -> Path:
         "ms_per_motion": result.ms_per_motion,
         "motions": entries,
     }
-    path = out / "manifest.json"
-    path.write_text(json.dumps(manifest, indent=1))
+    path = outputs.claim_file(out / "manifest.json", force=True)
+    with atomic_file(path, "w", encoding="utf-8") as fh:
+        json.dump(manifest, fh, indent=1)
     return path
+
+
+def claim_generation(out: str | os.PathLike, *inputs: str | os.PathLike, force: bool = False) -> Path:
+    """Check (before generating) that ``out`` may be written: see :func:`write_generation`."""
+    return outputs.claim_folder(out, force=force, inputs=inputs)

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from lsgan.outputs import OutputError
 import torch
 
 from lsgan.models.cache import StaleCache, read_latent_cache, write_latent_cache
@@ -276,7 +278,7 @@ def test_resume_continues_exactly(text_cache: Path, tmp_path: Path) -> None:
     train_diffusion(text_cache, tmp_path / "whole", diffusion=cfg, train=quick(), device="cpu", progress=False)
     train_diffusion(text_cache, tmp_path / "split", diffusion=cfg, train=quick(max_steps=10), device="cpu",
                     progress=False)
-    with pytest.raises(FileExistsError, match="resume"):
+    with pytest.raises(OutputError, match="--resume"):
         train_diffusion(text_cache, tmp_path / "split", diffusion=cfg, train=quick(), device="cpu", progress=False)
     resumed = train_diffusion(text_cache, tmp_path / "split", diffusion=cfg, train=quick(), device="cpu",
                               progress=False, resume=True)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from lsgan.outputs import OutputError
 import torch
 from torch.nn.utils.rnn import pack_padded_sequence
 
@@ -289,7 +291,7 @@ def test_resume_continues_exactly(shard, tmp_path, one_thread):
                     progress=False)
     train_evaluator(shard, tmp_path / "b", config=cfg, train_config=EvaluatorTrainConfig(**{**short, "max_steps": 3}),
                     device="cpu", progress=False)
-    with pytest.raises(FileExistsError):
+    with pytest.raises(OutputError, match="--resume"):
         train_evaluator(shard, tmp_path / "b", config=cfg, train_config=EvaluatorTrainConfig(**short), device="cpu",
                         progress=False)
     train_evaluator(shard, tmp_path / "b", config=cfg, train_config=EvaluatorTrainConfig(**short), device="cpu",

@@ -118,7 +118,7 @@ def test_export_command_writes_glb(tmp_path):
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     files = sorted(p.name for p in (tmp_path / "glb").iterdir())
-    assert files == ["000_clip.glb", "001_clip.glb"]
+    assert files == [".lsgan-outputs.json", "000_clip.glb", "001_clip.glb"]  # the registry of what lsgan wrote
     assert (tmp_path / "glb" / "000_clip.glb").read_bytes()[:4] == b"glTF"
     both = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", "--glb", "--bvh", str(folder), "-o", "x"],
                           capture_output=True, text=True)

@@ -38,7 +38,7 @@ def _has_colour(im: Image.Image, colour, tol: int = 0) -> bool:
 def test_write_gif_frames_size_duration(tmp_path, joints):
     out = write_gif(tmp_path / "sub" / "m.gif", joints, title="a person walks", fps=20.0, size=SIZE)
     assert out == tmp_path / "sub" / "m.gif" and out.is_file()
-    assert [p.name for p in out.parent.iterdir()] == ["m.gif"]  # no temporary file left behind
+    assert sorted(p.name for p in out.parent.iterdir()) == [".lsgan-outputs.json", "m.gif"]  # no temporary left
     with Image.open(out) as im:
         assert im.format == "GIF"
         assert im.n_frames == len(joints)
@@ -145,7 +145,7 @@ def test_write_mp4_is_h264_with_every_frame_in_order(tmp_path, joints):
     title = "a person walks"
     out = write_mp4(tmp_path / "sub" / "m.mp4", joints, title=title, fps=29.97, size=SIZE)
     assert out == tmp_path / "sub" / "m.mp4" and out.is_file()
-    assert [p.name for p in out.parent.iterdir()] == ["m.mp4"]  # no temporary file left behind
+    assert sorted(p.name for p in out.parent.iterdir()) == [".lsgan-outputs.json", "m.mp4"]  # no temporary left
     meta, decoded = _read_mp4(out)
     assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
     assert meta["size"] == (SIZE, SIZE) and meta["fps"] == pytest.approx(29.97)

@@ -35,7 +35,7 @@ def test_checkpoint_round_trip_is_exact_and_atomic(tmp_path):
     h = weights_hash(tmp_path / "run")
     save_checkpoint(tmp_path / "run" / "last", model=model, kind="toy", config={}, step=8)
     assert weights_hash(tmp_path / "run") == h  # same weights, same hash
-    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["last"]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [".lsgan-outputs.json", "last"]
 
 
 def test_recipes_build_dataclasses_and_refuse_unknown_keys(tmp_path):

@@ -1,6 +1,7 @@
 """The preprocess pipeline end to end on real files: joints and HumanML3D folders, bad inputs, resume, formats."""
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -128,12 +129,43 @@ def test_resume_after_interruption_gives_the_same_shard(joints_dir, tmp_path):
     _assert_same_shard(tmp_path / "full.h5", tmp_path / "part.h5")
 
 
-def test_resume_with_other_options_is_refused(joints_dir, tmp_path):
+def _interrupt_after(chunks: int):
+    def hook(done, total):
+        if done >= chunks:
+            raise KeyboardInterrupt
+    return hook
+
+
+def test_resume_with_other_options_redoes_every_chunk(joints_dir, tmp_path):
     src = JointsSource(root=str(joints_dir))
     with pytest.raises(KeyboardInterrupt):
-        preprocess(src, tmp_path / "o.h5", chunk_size=1, on_progress=lambda d, t: (_ for _ in ()).throw(KeyboardInterrupt) if d else None)
-    with pytest.raises(PreprocessError, match="other inputs or options"):
-        preprocess(src, tmp_path / "o.h5", chunk_size=1, min_frames=20, resume=True)
+        preprocess(src, tmp_path / "o.h5", chunk_size=1, on_progress=_interrupt_after(1))
+    seen = []
+    preprocess(src, tmp_path / "o.h5", chunk_size=1, min_frames=20, resume=True, on_progress=lambda d, t: seen.append(d))
+    assert seen[0] == 0  # no chunk made with min_frames=10 was reused
+    preprocess(src, tmp_path / "fresh.h5", chunk_size=1, min_frames=20)
+    _assert_same_shard(tmp_path / "fresh.h5", tmp_path / "o.h5")
+
+
+def test_resume_rereads_edited_added_and_removed_inputs(joints_dir, tmp_path):
+    src = JointsSource(root=str(joints_dir))
+    with pytest.raises(KeyboardInterrupt):
+        preprocess(src, tmp_path / "o.h5", chunk_size=1, on_progress=_interrupt_after(3))
+    edited = np.load(joints_dir / "noisy.npy")[::-1].copy()
+    np.save(joints_dir / "noisy.npy", edited)  # edited after its chunk was finished
+    (joints_dir / "texts" / "rigid_scaled.txt").write_text("a new caption#a/DET new/ADJ caption/NOUN#0.0#0.0\n")
+    np.save(joints_dir / "added.npy", edited[:40])
+    (joints_dir / "mirrored_reversed.npy").unlink()
+    preprocess(src, tmp_path / "o.h5", chunk_size=1, resume=True)
+    preprocess(src, tmp_path / "fresh.h5", chunk_size=1)
+    _assert_same_shard(tmp_path / "fresh.h5", tmp_path / "o.h5")
+    with Shard(tmp_path / "o.h5") as shard:
+        assert sorted(shard.names) == ["added", "noisy", "rigid_scaled"]
+        assert shard.captions(shard.names.index("rigid_scaled"))[0].text == "a new caption"
+        recorded = {e["path"]: e["sha256"] for e in shard.provenance["inputs"]}
+    assert recorded[str(joints_dir / "noisy.npy")] == hashlib.sha256((joints_dir / "noisy.npy").read_bytes()).hexdigest()
+    assert str(joints_dir / "mirrored_reversed.npy") not in recorded
+    assert not (tmp_path / "o.h5.parts").exists()
 
 
 def test_workers_give_the_same_shard(joints_dir, tmp_path):
@@ -237,9 +269,11 @@ def test_rewriting_a_humanml3d_folder_replaces_it_whole(joints_dir, tmp_path):
     out = tmp_path / "HML"
     preprocess(JointsSource(root=str(joints_dir)), out, format="humanml3d")
     (joints_dir / "noisy.npy").unlink()
-    preprocess(JointsSource(root=str(joints_dir)), out, format="humanml3d")
+    with pytest.raises(ValueError, match="exists; pass --force"):
+        preprocess(JointsSource(root=str(joints_dir)), out, format="humanml3d")
+    preprocess(JointsSource(root=str(joints_dir)), out, format="humanml3d", force=True)
     assert sorted(p.stem for p in (out / "new_joint_vecs").glob("*.npy")) == ["mirrored_reversed", "rigid_scaled"]
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == [".lsgan-outputs.json"]
 
 
 def test_featurising_our_recovered_joints_is_stable(hml_fixtures):

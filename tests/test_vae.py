@@ -6,6 +6,8 @@ from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
+
+from lsgan.outputs import OutputError
 import torch
 
 from lsgan.data.features import joints_to_features
@@ -181,7 +183,7 @@ def test_resume_continues_at_the_same_step(shard, tmp_path):
     cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=10, val_every=5, ckpt_every=10, log_every=5, seed=3)
     train_vae(shard, tmp_path / "a", model=TINY, train=cfg, device="cpu", progress=False)
     assert load_state(tmp_path / "a")["step"] == 10
-    with pytest.raises(FileExistsError):
+    with pytest.raises(OutputError, match="--resume"):
         train_vae(shard, tmp_path / "a", model=TINY, train=cfg, device="cpu", progress=False)
     resumed = train_vae(shard, tmp_path / "a", model=TINY, train=replace(cfg, max_steps=20), device="cpu",
                         resume=True, progress=False)

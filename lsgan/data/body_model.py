@@ -3,18 +3,19 @@
 Only what skinning and the skeleton need is read: the template mesh, the shape blend shapes, the joint
 regressor, the skinning weights, the kinematic tree and the faces. Files are found in smplx's layout
 (``DIR/smpl/SMPL_NEUTRAL.pkl``, ``DIR/smplx/SMPLX_NEUTRAL.npz``...), flat (``DIR/SMPLH_MALE.pkl``) or
-AMASS's (``DIR/neutral/model.npz``). ``.pkl`` files are read with a restricted unpickler that only
-rebuilds numpy arrays and scipy sparse matrices, so a model file cannot run code.
+AMASS's (``DIR/neutral/model.npz``). ``.pkl`` files, and pickled entries of ``.npz`` files, are read
+by :mod:`lsgan.pickles`, which only rebuilds numpy arrays and scipy sparse matrices from an exact
+allowlist, so a model file cannot run code.
 """
 from __future__ import annotations
 
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from lsgan.data.skeleton import JOINT_NAMES
+from lsgan.pickles import PickleReadError, load_npz, load_pickle, with_chumpy_advice
 
 MODEL_JOINTS = {"smpl": 24, "smplh": 52, "smplx": 55}
 MODEL_TYPES = tuple(MODEL_JOINTS)
@@ -111,41 +112,20 @@ def find_body_model(path: str | Path, *, model_type: str = "auto", gender: str =
     raise BodyModelError("\n".join(lines))
 
 
-class ArrayUnpickler(pickle.Unpickler):
-    """Rebuilds numpy arrays and scipy sparse matrices only; any other class is refused."""
-
-    _ALLOWED_PREFIXES = ("numpy", "scipy.sparse")
-    _ALLOWED_BUILTINS = {"dict", "list", "tuple", "set", "frozenset", "int", "float", "complex", "str", "bytes",
-                         "bytearray", "slice", "range", "object"}
-
-    def find_class(self, module: str, name: str):
-        if module.split(".")[0] == "numpy" or module.startswith(self._ALLOWED_PREFIXES[1]):
-            return super().find_class(module, name)
-        if module in ("builtins", "__builtin__", "copy_reg", "copyreg") and (
-                name in self._ALLOWED_BUILTINS or name == "_reconstructor"):
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refusing to load {module}.{name}")
-
-
 def _read_arrays(path: Path) -> dict:
-    if path.suffix == ".pkl":
-        try:
-            with open(path, "rb") as fh:
-                data = ArrayUnpickler(fh, encoding="latin1").load()
-        except pickle.UnpicklingError as exc:
-            raise BodyModelError(
-                f"cannot read body model {path}: {exc}. Original SMPL pickles hold chumpy objects: "
-                "remove them with smplx's tools/clean_ch.py (or use the .npz release)") from exc
-        except (OSError, EOFError, ValueError, AttributeError) as exc:
-            raise BodyModelError(f"cannot read body model {path}: {exc}") from exc
-        if not isinstance(data, dict):
-            raise BodyModelError(f"{path} is not a body model file: it holds a {type(data).__name__}, not a dict")
-        return data
+    """The model's entries; 0-d object entries of an ``.npz`` (a pickled sparse matrix) are unwrapped."""
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {k: npz[k] for k in REQUIRED_KEYS if k in npz.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise BodyModelError(f"cannot read body model {path}: {exc}") from exc
+        if path.suffix == ".pkl":
+            data = load_pickle(path)
+        else:
+            data = {k: v.item() if v.dtype == object and v.ndim == 0 else v
+                    for k, v in load_npz(path, REQUIRED_KEYS).items()}
+    except PickleReadError as exc:
+        raise BodyModelError(with_chumpy_advice(exc, "original SMPL pickles hold chumpy objects: remove them with "
+                                                     "smplx's tools/clean_ch.py (or use the .npz release)")) from exc
+    if not isinstance(data, dict):
+        raise BodyModelError(f"{path} is not a body model file: it holds a {type(data).__name__}, not a dict")
+    return data
 
 
 def _dense(a) -> np.ndarray:

@@ -17,6 +17,7 @@ import numpy as np
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import ClipRecord, _Accumulator
 from lsgan.data.tokens import tokenize
+from lsgan import outputs
 from lsgan.io import atomic_folder
 
 
@@ -63,4 +64,5 @@ def write_humanml3d_folder(
         (tmp / "all.txt").write_text("".join(f"{n}\n" for s in splits.values() for n in s))
         if provenance is not None:
             (tmp / "lsgan_provenance.json").write_text(json.dumps(provenance, indent=1, sort_keys=True))
+        outputs.record_tree(tmp)  # each file is known as lsgan's, so a later --force can tell edits apart
     return {"clips": n_clips, "frames": n_frames, "captions": n_caps}

@@ -10,7 +10,8 @@ import dataclasses
 import hashlib
 import json
 import os
-import shutil
+import re
+import signal
 import sys
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -24,7 +25,11 @@ import numpy as np
 from lsgan import __version__
 from lsgan.data.clip import Caption, ClipError, RawClip, mirror_caption, swap_left_right
 from lsgan.data.features import joints_to_features
+from lsgan.data.plausibility import clip_checks, summarise
+from lsgan.data.plausibility import format_summary as format_plausibility
 from lsgan.data.shards import FORMAT_VERSION, ClipRecord, write_shard
+from lsgan import outputs
+from lsgan.faults import fault_point
 from lsgan.io import atomic_file
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS, mirror_joints
 
@@ -53,6 +58,7 @@ class PreprocessResult:
     mirrored: int
     skipped: list[Skip] = field(default_factory=list)
     report: Path | None = None
+    plausibility: dict | None = None  # lsgan.data.plausibility.summarise() of the clips imported from joints
 
     @property
     def hours(self) -> float:
@@ -73,13 +79,7 @@ def hash_split(name: str) -> str:
 
 
 def _sha256(path: str) -> str | None:
-    if not os.path.isfile(path):
-        return None
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return outputs.file_sha256(path) if os.path.isfile(path) else None
 
 
 def _check_joints(clip: RawClip, min_frames: int) -> np.ndarray:
@@ -130,13 +130,30 @@ def _record(clip: RawClip, feats: np.ndarray) -> dict:
     }
 
 
+def item_files(source, item: str) -> list[str]:
+    """The files one work item reads, which address its chunk: the source's own list, else the item's file."""
+    own = getattr(source, "item_files", None)
+    if callable(own):
+        return [os.fspath(f) for f in own(item)]
+    for candidate in (item, item.partition("#")[0]):
+        if os.path.isfile(candidate):
+            return [candidate]
+    return []
+
+
 def process_chunk(source, items: list[str], mirror: bool | None, min_frames: int) -> dict:
-    """Load, validate and featurise the clips of some items (runs in a worker). Never raises for bad input."""
+    """Load, validate and featurise the clips of some items (runs in a worker). Never raises for bad input.
+
+    ``inputs`` maps every file read to its SHA-256, hashed just before it was read.
+    """
     records: list[dict] = []
     skips: list[dict] = []
     inputs: dict[str, str | None] = {}
+    checks: dict[str, dict] = {}  # plausibility figures of each clip imported from joints
     pending: list[RawClip] = []  # clips with joints, featurised together below
     for item in items:
+        for f in item_files(source, item):
+            inputs.setdefault(f, _sha256(f))
         try:
             clips = source.load(item)
         except ClipError as e:
@@ -145,7 +162,6 @@ def process_chunk(source, items: list[str], mirror: bool | None, min_frames: int
         except Exception as e:  # an importer bug or an unforeseen format problem: report, do not crash the run
             skips.append({"item": item, "clip": None, "reason": f"{type(e).__name__}: {e}"})
             continue
-        inputs[item] = _sha256(item)
         for clip in clips:
             try:
                 if clip.features is not None:
@@ -155,37 +171,48 @@ def process_chunk(source, items: list[str], mirror: bool | None, min_frames: int
             except ClipError as e:
                 skips.append({"item": item, "clip": clip.name, "reason": str(e)})
                 continue
+            checks[clip.name] = clip_checks(clip.joints)  # mirrored copies give the same figures
             pending.append(clip)
             if clip.mirror if mirror is None else mirror:
                 pending.append(_mirrored(clip))
-    if pending:
-        try:
-            with np.errstate(all="ignore"):  # a degenerate clip yields NaN features, reported below
-                feats = joints_to_features([c.joints for c in pending])
-        except Exception:  # find the culprit(s) one by one
-            feats = []
-            for c in pending:
-                try:
-                    with np.errstate(all="ignore"):
-                        feats.append(joints_to_features(c.joints))
-                except Exception as e:
-                    feats.append(e)
-        for clip, x in zip(pending, feats):
-            if isinstance(x, Exception) or not np.isfinite(x).all():
-                why = f"feature computation failed: {x}" if isinstance(x, Exception) else (
-                    "features are not finite (degenerate skeleton: coincident joints or zero-length bones?)")
-                skips.append({"item": clip.source_file, "clip": clip.name, "reason": why})
-                continue
-            records.append(_record(clip, x))
-    return {"records": records, "skips": skips, "inputs": inputs}
+    _featurise(pending, records, skips)
+    imported = {r["name"] for r in records}
+    checks = {name: c for name, c in checks.items() if name in imported}
+    return {"records": records, "skips": skips, "inputs": inputs, "plausibility": checks}
 
 
-def _save_chunk(path: Path, result: dict) -> None:
+def _featurise(pending: list[RawClip], records: list[dict], skips: list[dict]) -> None:
+    """Features of all pending clips in one batch; a clip that fails is found and skipped with its reason."""
+    if not pending:
+        return
+    try:
+        with np.errstate(all="ignore"):  # a degenerate clip yields NaN features, reported below
+            feats = joints_to_features([c.joints for c in pending])
+    except Exception:  # find the culprit(s) one by one
+        feats = []
+        for c in pending:
+            try:
+                with np.errstate(all="ignore"):
+                    feats.append(joints_to_features(c.joints))
+            except Exception as e:
+                feats.append(e)
+    for clip, x in zip(pending, feats):
+        if isinstance(x, Exception) or not np.isfinite(x).all():
+            why = f"feature computation failed: {x}" if isinstance(x, Exception) else (
+                "features are not finite (degenerate skeleton: coincident joints or zero-length bones?)")
+            skips.append({"item": clip.source_file, "clip": clip.name, "reason": why})
+            continue
+        records.append(_record(clip, x))
+
+
+def _save_chunk(path: Path, key: str, result: dict) -> None:
     arrays = {f"f{i}": r["features"] for i, r in enumerate(result["records"])}
     meta = {
+        "key": key,
         "records": [{k: v for k, v in r.items() if k != "features"} for r in result["records"]],
         "skips": result["skips"],
         "inputs": result["inputs"],
+        "plausibility": result["plausibility"],
     }
     with atomic_file(path) as f:
         np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
@@ -205,10 +232,113 @@ def _iter_records(paths: list[Path]) -> Iterator[ClipRecord]:
                     name=r["name"], features=z[f"f{i}"], split=r["split"], source_file=r["source_file"],
                     captions=[Caption(*c) for c in r["captions"]], action=r["action"], mirror_of=r["mirror_of"],
                 )
+        fault_point("preprocess.write")
 
 
 def _source_config(source) -> dict:
     return {"name": source.name, **dataclasses.asdict(source)}
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:32]
+
+
+@dataclass
+class _Plan:
+    """The work: chunks of items, each addressed by the content of what it reads and the options."""
+
+    chunks: list[list[str]]
+    keys: list[str]
+    hashes: dict[str, str | None]  # every item file -> SHA-256 when planned
+    extra: dict[str, str | None]  # the source's other inputs (split files, labels, maps) -> SHA-256
+
+
+def _plan(source, items: list[str], chunk_size: int, options: dict) -> _Plan:
+    files = {it: item_files(source, it) for it in items}
+    hashes = {f: _sha256(f) for fs in files.values() for f in fs}
+    extra = {p: _sha256(p) for p in source.inputs()}
+    base = _digest({"lsgan": __version__, "format": FORMAT_VERSION, "source": _source_config(source),
+                    "options": options, "inputs": extra})
+    chunks = [items[i : i + chunk_size] for i in range(0, len(items), chunk_size)]
+    keys = [_digest({"base": base, "items": [[it, [hashes[f] for f in files[it]]] for it in c]}) for c in chunks]
+    return _Plan(chunks, keys, hashes, extra)
+
+
+def _open_staging(staging: Path, manifest: dict, keep: set[str]) -> None:
+    """Make the staging folder, keeping only the finished chunks named in ``keep``."""
+    if staging.exists():
+        if not staging.is_dir() or not (staging / "manifest.json").is_file():
+            raise PreprocessError(f"{staging}: exists and is not lsgan's staging folder (no manifest.json); "
+                                  "move it away")
+        outputs.sweep_folder_temps(staging)
+        for p in staging.glob("chunk_*.npz"):
+            if p.name not in keep:
+                p.unlink()
+    with atomic_file(staging / "manifest.json", "w", encoding="utf-8") as f:
+        json.dump(manifest, f, indent=1)
+
+
+def _close_staging(staging: Path, paths: list[Path]) -> None:
+    """Remove the staging folder's own files, and the folder when nothing else is left in it."""
+    for p in [*paths, staging / "manifest.json", staging / outputs.REGISTRY]:
+        p.unlink(missing_ok=True)
+    outputs.sweep_folder_temps(staging)
+    try:
+        staging.rmdir()
+    except OSError:
+        pass  # someone else's files are in it: leave them
+
+
+def _claim(source, items: list[str], output: Path, format: str, report: Path, force: bool) -> None:
+    """Refuse outputs that exist (without ``force``), are not lsgan's, or hold the inputs."""
+    roots = [getattr(source, a) for a in ("root", "path") if isinstance(getattr(source, a, None), str)]
+    inputs = [*roots, *items[:1], *source.inputs()]
+    if format == "hdf5":
+        outputs.claim_file(output, force=force, inputs=[*inputs, *(i for i in items if os.path.isfile(i))])
+    else:
+        outputs.claim_folder(output, force=force, inputs=inputs, whole=True)
+    if report.exists() and not outputs.is_ours(report):
+        raise outputs.OutputError(f"{report}: exists and is not a report lsgan wrote; give another --report path")
+    outputs.check_inputs(report, inputs)
+
+
+def _run_chunks(source, plan: _Plan, paths: list[Path], todo: list[int], *, mirror, min_frames: int,
+                workers: int, strict: bool, progress: Callable[[int], None]) -> None:
+    """Process the chunks not yet done (in worker processes when ``workers`` > 1), saving each when done."""
+
+    def finished(k: int, result: dict) -> None:
+        if strict and result["skips"]:
+            s = result["skips"][0]
+            raise PreprocessError(f"{s['item']}{' [' + s['clip'] + ']' if s['clip'] else ''}: {s['reason']}")
+        _save_chunk(paths[k], plan.keys[k], result)
+        progress(len(plan.chunks[k]))
+        fault_point("preprocess.chunk")
+
+    if workers <= 1:
+        for k in todo:
+            finished(k, process_chunk(source, plan.chunks[k], mirror, min_frames))
+        return
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
+        futures = {k: pool.submit(process_chunk, source, plan.chunks[k], mirror, min_frames) for k in todo}
+        try:
+            for k in todo:
+                finished(k, futures[k].result())
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def _check_unchanged(source, plan: _Plan, metas: list[dict]) -> dict[str, str | None]:
+    """The hashes of what was read; an input edited while the run read it stops the run."""
+    read: dict[str, str | None] = {}
+    for m in metas:
+        read.update(m["inputs"])
+    now = {**{f: read.get(f) for f in plan.hashes}, **{p: _sha256(p) for p in plan.extra}}
+    changed = sorted(f for f, h in {**plan.hashes, **plan.extra}.items() if now.get(f) != h)
+    if changed:
+        raise PreprocessError(f"{changed[0]}: changed while it was being preprocessed"
+                              f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}; run again")
+    return {**read, **plan.extra}
 
 
 def preprocess(
@@ -222,6 +352,7 @@ def preprocess(
     chunk_size: int = 16,
     resume: bool = False,
     strict: bool = False,
+    force: bool = False,
     report: str | os.PathLike | None = None,
     on_progress: Callable[[int, int], None] | None = None,
 ) -> PreprocessResult:
@@ -229,107 +360,109 @@ def preprocess(
 
     mirror: add mirrored copies ('M' + name); None follows the source's default.
     min_frames: clips with fewer joint frames are skipped as too short (training length bounds are
-    applied later, when reading). on_progress(done_items, total_items) is called after each chunk.
+    applied later, when reading). resume: reuse the finished chunks in ``OUTPUT.parts/`` whose inputs
+    (by SHA-256) and options are unchanged. force: replace an output lsgan wrote before (never another file).
+    on_progress(done_items, total_items) is called after each chunk.
     """
     if format not in FORMATS:
         raise ValueError(f"unknown output format {format!r}; choose one of {', '.join(FORMATS)}")
     output = Path(output)
+    report_path = Path(report) if report is not None else output.with_name(output.name + ".report.json")
     items = source.scan()
     if not items:
-        raise PreprocessError(f"{source.name}: no input files found under {getattr(source, 'root', '')!s}")
+        raise PreprocessError(f"{getattr(source, 'root', source.name)!s}: no input files found")
     staging = output.with_name(output.name + ".parts")
+    # a resumed run that was stopped after writing its output may replace that output (when it is lsgan's)
+    _claim(source, items, output, format, report_path, force or (resume and (staging / "manifest.json").is_file()))
     options = {"mirror": mirror, "min_frames": min_frames, "chunk_size": chunk_size}
-    manifest = {"lsgan_version": __version__, "source": _source_config(source), "options": options, "items": len(items)}
-    if staging.exists() and resume:
-        old = json.loads((staging / "manifest.json").read_text()) if (staging / "manifest.json").exists() else None
-        if old != json.loads(json.dumps(manifest)):
-            raise PreprocessError(
-                f"{staging}: the interrupted run used other inputs or options; run without --resume to start over"
-            )
-    elif staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True, exist_ok=True)
-    (staging / "manifest.json").write_text(json.dumps(manifest, indent=1))
-
-    chunks = [items[i : i + chunk_size] for i in range(0, len(items), chunk_size)]
-    paths = [staging / f"chunk_{k:06d}.npz" for k in range(len(chunks))]
+    plan = _plan(source, items, chunk_size, options)
+    paths = [staging / f"chunk_{k}.npz" for k in plan.keys]
+    _open_staging(staging, {"lsgan_version": __version__, "source": _source_config(source), "options": options,
+                            "items": len(items)}, {p.name for p in paths} if resume else set())
     todo = [k for k, p in enumerate(paths) if not p.exists()]
-    done_items = len(items) - sum(len(chunks[k]) for k in todo)
+    done = len(items) - sum(len(plan.chunks[k]) for k in todo)
 
-    def finished(k: int, result: dict) -> None:
-        nonlocal done_items
-        if strict and result["skips"]:
-            s = result["skips"][0]
-            raise PreprocessError(f"{s['item']}{' [' + s['clip'] + ']' if s['clip'] else ''}: {s['reason']}")
-        _save_chunk(paths[k], result)
-        done_items += len(chunks[k])
+    def progress(n: int) -> None:
+        nonlocal done
+        done += n
         if on_progress is not None:
-            on_progress(done_items, len(items))
+            on_progress(done, len(items))
 
-    if on_progress is not None:
-        on_progress(done_items, len(items))
-    if workers <= 1:
-        for k in todo:
-            finished(k, process_chunk(source, chunks[k], mirror, min_frames))
-    else:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
-            futures = {k: pool.submit(process_chunk, source, chunks[k], mirror, min_frames) for k in todo}
-            try:
-                for k in todo:
-                    finished(k, futures[k].result())
-            except BaseException:
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
-
+    progress(0)
+    _run_chunks(source, plan, paths, todo, mirror=mirror, min_frames=min_frames, workers=workers, strict=strict,
+                progress=progress)
     metas = [_load_chunk_meta(p) for p in paths]
+    inputs = _check_unchanged(source, plan, metas)
+    result = _write_output(source, output, format, paths, metas, inputs, options)
+    _write_report(report_path, result, source)
+    result.report = report_path
+    fault_point("preprocess.report")
+    _close_staging(staging, paths)
+    if not result.clips:
+        raise PreprocessError(f"{getattr(source, 'root', source.name)!s}: no clip could be imported "
+                              f"({len(result.skipped)} skipped):\n{format_skips(result.skipped, report_path)}")
+    return result
+
+
+def _write_output(source, output: Path, format: str, paths: list[Path], metas: list[dict], inputs: dict,
+                  options: dict) -> PreprocessResult:
+    """The shard or folder from the finished chunks (nothing is written when no clip was imported)."""
     skipped = [Skip(**s) for m in metas for s in m["skips"]]
     names = [r["name"] for m in metas for r in m["records"]]
     if not names:
-        raise PreprocessError(f"{source.name}: no clip could be imported ({len(skipped)} skipped)")
+        return PreprocessResult(output=output, clips=0, frames=0, captions=0, mirrored=0, skipped=skipped)
     dup = sorted(n for n, c in Counter(names).items() if c > 1)
     if dup:
-        raise PreprocessError(f"clip names are not unique: {', '.join(dup[:5])}")
+        raise PreprocessError(f"{getattr(source, 'root', source.name)!s}: clip names are not unique: "
+                              f"{', '.join(dup[:5])}")
     action_names = getattr(source, "action_names", None)
     action_names = list(action_names()) if callable(action_names) else sorted(
         {r["action"] for m in metas for r in m["records"] if r["action"] is not None}
     )
-    inputs = {k: v for m in metas for k, v in m["inputs"].items()}
     provenance = {
         "source": _source_config(source),
         "options": {**options, "format": format},
-        "inputs": [{"path": p, "sha256": inputs[p]} for p in sorted(inputs)]
-        + [{"path": p, "sha256": _sha256(p)} for p in source.inputs()],
+        "inputs": [{"path": p, "sha256": inputs[p]} for p in sorted(inputs)],
         "lsgan_version": __version__,
         "format_version": FORMAT_VERSION,
     }
     stats_fn = getattr(source, "stats", None)
     stats = stats_fn() if callable(stats_fn) else None
-
     if format == "hdf5":
-        summary = write_shard(
-            output, _iter_records(paths), source=source.name, action_names=action_names,
-            provenance=provenance, stats=stats,
-        )
+        summary = write_shard(output, _iter_records(paths), source=source.name, action_names=action_names,
+                              provenance=provenance, stats=stats)
     else:
         from lsgan.data.humanml3d_format import write_humanml3d_folder
 
         summary = write_humanml3d_folder(output, _iter_records(paths), stats=stats, provenance=provenance)
-
-    result = PreprocessResult(
+    checks = {name: c for m in metas for name, c in m["plausibility"].items()}
+    return PreprocessResult(
         output=output, clips=summary["clips"], frames=summary["frames"], captions=summary["captions"],
         mirrored=sum(1 for m in metas for r in m["records"] if r["mirror_of"]), skipped=skipped,
+        plausibility=summarise(checks) if checks else None,
     )
-    report_path = Path(report) if report is not None else output.with_name(output.name + ".report.json")
-    _write_report(report_path, result, source)
-    result.report = report_path
-    shutil.rmtree(staging)
-    return result
 
 
 def _init_worker() -> None:
-    """One thread per worker process: the workers already use the cores (torch reads this at import)."""
+    """One thread per worker process (the workers already use the cores; torch reads this at import), and
+    Ctrl-C is left to the main process, which stops the run and reports once."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = "1"
+
+
+def _die_with_parent() -> None:
+    """On Linux, have the kernel kill this worker when the main process dies (even by SIGKILL), so a killed
+    run leaves no orphans behind; elsewhere the pool's own shutdown is all there is."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() == 1:  # the main process died before this line
+        os._exit(1)
 
 
 def _write_report(path: Path, result: PreprocessResult, source) -> None:
@@ -341,15 +474,58 @@ def _write_report(path: Path, result: PreprocessResult, source) -> None:
         "frames": result.frames,
         "hours": round(result.hours, 4),
         "captions": result.captions,
+        "skipped_by_reason": [{"reason": reason, "count": len(group), "items": [s.item for s in group]}
+                              for reason, group in group_skips(result.skipped)],
         "skipped": [dataclasses.asdict(s) for s in result.skipped],
+        "plausibility": result.plausibility,
     }
     with atomic_file(path, "w") as f:
         json.dump(body, f, indent=1)
 
 
-def print_skips(result: PreprocessResult, limit: int = 10, stream=sys.stderr) -> None:
-    """A few skipped clips with their reasons, for the terminal."""
-    for s in result.skipped[:limit]:
-        print(f"  skipped {s.item}{' [' + s.clip + ']' if s.clip else ''}: {s.reason}", file=stream)
-    if len(result.skipped) > limit:
-        print(f"  ... and {len(result.skipped) - limit} more (see {result.report})", file=stream)
+def _reason_kind(skip: Skip) -> str:
+    """A skip's reason with its file names and numbers blanked, so alike failures group together."""
+    reason = skip.reason.replace(skip.item, "")
+    reason = re.sub(r"\S*[/\\]\S*", "…", reason)
+    return re.sub(r"\d+(\.\d+)?", "#", reason).strip(": ")
+
+
+def group_skips(skipped: list[Skip]) -> list[tuple[str, list[Skip]]]:
+    """Skips grouped by kind of reason, largest group first; each group is named by its first reason."""
+    groups: dict[str, list[Skip]] = {}
+    for s in skipped:
+        groups.setdefault(_reason_kind(s), []).append(s)
+    return [(g[0].reason.replace(g[0].item, "").strip(": ") or g[0].reason, g)
+            for g in sorted(groups.values(), key=len, reverse=True)]
+
+
+def format_skips(skipped: list[Skip], report: Path | None = None, groups: int = 8, examples: int = 3) -> str:
+    """The skipped inputs for the terminal: one line per kind of reason, with a few of the names."""
+    lines = []
+    grouped = group_skips(skipped)
+    for reason, group in grouped[:groups]:
+        items = sorted({s.item for s in group})
+        shown = ", ".join(Path(i).name for i in items[:examples]) + (", ..." if len(items) > examples else "")
+        what = f"{len(items)} file{'s' if len(items) != 1 else ''}"
+        if len(group) != len(items):
+            what += f" ({len(group)} clips)"
+        lines.append(f"  {what}: {reason} (e.g. {shown})" if len(items) > 1 else f"  {what}: {reason} ({shown})")
+    if len(grouped) > groups:
+        lines.append(f"  ... and {len(grouped) - groups} more kinds of failure")
+    if report is not None:
+        lines.append(f"  every skipped input and its reason: {report}")
+    return "\n".join(lines)
+
+
+def print_skips(result: PreprocessResult, stream=sys.stderr, warnings: int = 5) -> None:
+    """The skipped inputs, grouped by reason, and the plausibility summary with its first warnings."""
+    if result.skipped:
+        print(format_skips(result.skipped, result.report), file=stream)
+    if result.plausibility is not None:
+        print(format_plausibility(result.plausibility), file=stream)
+        lines = [w if w.startswith(name) else f"{name}: {w}"
+                 for name, ws in result.plausibility["warnings"].items() for w in ws]
+        for line in lines[:warnings]:
+            print(f"  warning: {line}", file=stream)
+        if len(lines) > warnings:
+            print(f"  ... {len(lines) - warnings} more warnings in {result.report}", file=stream)

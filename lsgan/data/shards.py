@@ -20,12 +20,17 @@ Layout (format ``lsgan-motion-shard``, version 1; every string is UTF-8)::
 
 Root attributes: format, format_version, lsgan_version, source, fps (20), feature_dim (263),
 num_joints (22), action_names (JSON list).
+
+A file that cannot be read or written raises :class:`DataFileError` (a ValueError), one line that
+starts with the file's path.
 """
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable
+import re
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,12 +40,116 @@ import numpy as np
 from lsgan import __version__
 from lsgan.data.clip import Caption
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS
-from lsgan.io import atomic_path
+from lsgan.io import atomic_path, publish
 
 FORMAT = "lsgan-motion-shard"
 FORMAT_VERSION = 1
 _STR = h5py.string_dtype("utf-8")
 _CHUNK_ROWS = 1024
+_SHARD = "an lsgan motion shard"
+_DATASETS = ("features", "clips/name", "clips/offset", "clips/length", "clips/split", "clips/action",
+             "clips/source_file", "clips/mirror_of", "captions/clip", "captions/text", "captions/tokens",
+             "captions/start", "captions/end", "stats/mean", "stats/std")
+_ATTRS = ("format_version", "source", "fps", "action_names")
+
+
+class DataFileError(ValueError):
+    """A data file that cannot be read or written; the message is one line starting with the file's path.
+
+    A DataLoader worker's error is raised again in the main process with the worker's traceback as its
+    message; only the original line is kept.
+    """
+
+    def __init__(self, message: str = "") -> None:
+        marker = f"{type(self).__module__}.{type(self).__qualname__}: "
+        if message.startswith("Caught ") and marker in message:
+            message = message[message.rindex(marker) + len(marker):].strip()
+        super().__init__(message)
+
+
+def _reason(e: BaseException) -> str:
+    """h5py's message without its 'Unable to ... (' wrapper, on one line."""
+    text = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)
+    m = re.fullmatch(r"(?:Unable to|Can't) [^(]*\((.*)\)", text, re.S)
+    return " ".join((m.group(1) if m else text).split())
+
+
+def open_hdf5(path: str | os.PathLike) -> h5py.File:
+    """Open an HDF5 file to read, or raise DataFileError saying plainly why it cannot be."""
+    try:
+        return h5py.File(path, "r")
+    except FileNotFoundError:
+        raise DataFileError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise DataFileError(f"{path}: is a directory, not an HDF5 file") from None
+    except PermissionError:
+        raise DataFileError(f"{path}: cannot read (permission denied)") from None
+    except OSError as e:
+        reason = _reason(e)
+        if "file signature not found" in reason:
+            raise DataFileError(f"{path}: not an HDF5 file") from None
+        raise DataFileError(f"{path}: truncated or corrupt HDF5 ({reason})") from None
+
+
+@contextmanager
+def reading(path: str | os.PathLike, what: str) -> Iterator[None]:
+    """Turn what h5py or a malformed file raises while ``path`` is read into a DataFileError.
+
+    ``what`` names the expected content, e.g. 'an lsgan motion shard'.
+    """
+    try:
+        yield
+    except DataFileError:
+        raise
+    except (OSError, RuntimeError) as e:
+        raise DataFileError(f"{path}: truncated or corrupt HDF5 ({_reason(e)})") from None
+    except (KeyError, ValueError, TypeError, IndexError, AttributeError) as e:
+        raise DataFileError(f"{path}: not {what} ({_reason(e)})") from None
+
+
+def check_layout(f: h5py.File, path: str | os.PathLike, what: str, fmt: str, version: int,
+                 datasets: Iterable[str], attrs: Iterable[str], hint: str = "") -> None:
+    """Refuse (DataFileError) a file whose format attribute, version, datasets or attributes are not ``what``'s.
+
+    ``hint`` follows the reason when the format attribute is not ``fmt`` (e.g. which command makes one).
+    """
+    found = f.attrs.get("format")
+    if found != fmt:
+        said = "no format attribute" if found is None else f"format attribute is {found!r}"
+        raise DataFileError(f"{path}: not {what} ({said}{'; ' + hint if hint else ''})")
+    missing = [k for k in datasets if k not in f] + [f"attribute {a}" for a in attrs if a not in f.attrs]
+    if missing:
+        more = f" and {len(missing) - 4} more" if len(missing) > 5 else ""
+        raise DataFileError(f"{path}: not {what} (missing {', '.join(missing[:4] if more else missing)}{more})")
+    if int(f.attrs["format_version"]) > version:
+        raise DataFileError(f"{path}: format version {f.attrs['format_version']} is newer than this lsgan reads "
+                            f"({version})")
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Refuse (DataFileError) an output path that is a directory or lies where no file can be made."""
+    path = Path(path)
+    with writing(path):
+        if path.is_dir():
+            raise DataFileError(f"{path}: cannot write (is a directory)")
+        folder = next(p for p in path.parents if p.exists())
+        if not folder.is_dir():
+            raise DataFileError(f"{path}: cannot write ({folder} is a file, not a folder)")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise DataFileError(f"{path}: cannot write (permission denied)")
+
+
+@contextmanager
+def writing(path: str | os.PathLike) -> Iterator[None]:
+    """Turn an OSError of creating, or renaming into, ``path`` into a DataFileError naming it."""
+    try:
+        yield
+    except IsADirectoryError:
+        raise DataFileError(f"{path}: cannot write (is a directory)") from None
+    except PermissionError:
+        raise DataFileError(f"{path}: cannot write (permission denied)") from None
+    except OSError as e:
+        raise DataFileError(f"{path}: cannot write ({(e.strerror or _reason(e)).lower()})") from None
 
 
 @dataclass
@@ -80,6 +189,34 @@ class _Accumulator:
         return mean.astype(np.float32), group_std(std)
 
 
+def _write_tables(f: h5py.File, cols: dict[str, list], caps: dict[str, list], stats: tuple | None,
+                  acc: _Accumulator, *, source: str, action_names: list[str], provenance: dict) -> None:
+    """The clip and caption tables, the statistics, the provenance and the root attributes of a shard."""
+    g = f.create_group("clips")
+    for key in ("name", "split", "source_file", "mirror_of"):
+        g.create_dataset(key, data=np.array(cols[key], dtype=object), dtype=_STR, track_times=False)
+    g.create_dataset("offset", data=np.array(cols["offset"], dtype=np.int64), track_times=False)
+    g.create_dataset("length", data=np.array(cols["length"], dtype=np.int32), track_times=False)
+    g.create_dataset("action", data=np.array(cols["action"], dtype=np.int32), track_times=False)
+    g = f.create_group("captions")
+    g.create_dataset("clip", data=np.array(caps["clip"], dtype=np.int32), track_times=False)
+    for key in ("text", "tokens"):
+        g.create_dataset(key, data=np.array(caps[key], dtype=object), dtype=_STR, track_times=False)
+    for key in ("start", "end"):
+        g.create_dataset(key, data=np.array(caps[key], dtype=np.float32), track_times=False)
+
+    mean, std = stats if stats is not None else acc.result()
+    g = f.create_group("stats")
+    g.create_dataset("mean", data=np.asarray(mean, np.float32), track_times=False)
+    g.create_dataset("std", data=np.asarray(std, np.float32), track_times=False)
+    g.attrs["origin"] = "source" if stats is not None else "train split (HumanML3D group rule)"
+    f.create_dataset("provenance", data=json.dumps(provenance, sort_keys=True), dtype=_STR, track_times=False)
+    f.attrs.update(
+        format=FORMAT, format_version=FORMAT_VERSION, lsgan_version=__version__, source=source,
+        fps=FPS, feature_dim=FEATURE_DIM, num_joints=NUM_JOINTS, action_names=json.dumps(action_names),
+    )
+
+
 def write_shard(
     path: str | os.PathLike,
     clips: Iterable[ClipRecord],
@@ -95,7 +232,9 @@ def write_shard(
     on the train split with HumanML3D's rule (per-feature mean; std averaged within each group).
     """
     path = Path(path)
-    fd, tmp = atomic_path(path)
+    check_writable(path)
+    with writing(path):
+        fd, tmp = atomic_path(path)
     os.close(fd)
     action_index = {a: i for i, a in enumerate(action_names)}
     acc = _Accumulator()
@@ -148,30 +287,9 @@ def write_shard(
                     flush()
             flush()
 
-            g = f.create_group("clips")
-            for key in ("name", "split", "source_file", "mirror_of"):
-                g.create_dataset(key, data=np.array(cols[key], dtype=object), dtype=_STR, track_times=False)
-            g.create_dataset("offset", data=np.array(cols["offset"], dtype=np.int64), track_times=False)
-            g.create_dataset("length", data=np.array(cols["length"], dtype=np.int32), track_times=False)
-            g.create_dataset("action", data=np.array(cols["action"], dtype=np.int32), track_times=False)
-            g = f.create_group("captions")
-            g.create_dataset("clip", data=np.array(caps["clip"], dtype=np.int32), track_times=False)
-            for key in ("text", "tokens"):
-                g.create_dataset(key, data=np.array(caps[key], dtype=object), dtype=_STR, track_times=False)
-            for key in ("start", "end"):
-                g.create_dataset(key, data=np.array(caps[key], dtype=np.float32), track_times=False)
-
-            mean, std = stats if stats is not None else acc.result()
-            g = f.create_group("stats")
-            g.create_dataset("mean", data=np.asarray(mean, np.float32), track_times=False)
-            g.create_dataset("std", data=np.asarray(std, np.float32), track_times=False)
-            g.attrs["origin"] = "source" if stats is not None else "train split (HumanML3D group rule)"
-            f.create_dataset("provenance", data=json.dumps(provenance, sort_keys=True), dtype=_STR, track_times=False)
-            f.attrs.update(
-                format=FORMAT, format_version=FORMAT_VERSION, lsgan_version=__version__, source=source,
-                fps=FPS, feature_dim=FEATURE_DIM, num_joints=NUM_JOINTS, action_names=json.dumps(action_names),
-            )
-        os.replace(tmp, path)
+            _write_tables(f, cols, caps, stats, acc, source=source, action_names=action_names, provenance=provenance)
+        with writing(path):
+            publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -186,23 +304,25 @@ def _strings(ds) -> list[str]:
 class Shard:
     """Read access to one shard. The clip table is loaded at once; features are read on demand.
 
+    A file that is not a readable shard, or a clip whose frames cannot be read, raises DataFileError.
+
     >>> with Shard("bandai.h5") as shard:
     ...     x = shard.features(0)          # (T, 263) float32
     """
 
     def __init__(self, path: str | os.PathLike, in_memory: bool = False) -> None:
         self.path = Path(path)
+        self._file = open_hdf5(self.path)
         try:
-            self._file = h5py.File(self.path, "r")
-        except OSError as e:
-            raise ValueError(f"{self.path}: not a readable HDF5 file ({e})") from None
-        f = self._file
-        if f.attrs.get("format") != FORMAT:
-            f.close()
-            raise ValueError(f"{self.path}: not an lsgan motion shard (format attribute is {f.attrs.get('format')!r})")
-        if int(f.attrs["format_version"]) > FORMAT_VERSION:
-            f.close()
-            raise ValueError(f"{self.path}: shard format {f.attrs['format_version']} is newer than this lsgan reads")
+            with reading(self.path, _SHARD):
+                self._load(self._file, in_memory)
+        except BaseException:
+            self._file.close()
+            raise
+
+    def _load(self, f: h5py.File, in_memory: bool) -> None:
+        """The clip table, captions and statistics; the features too when ``in_memory``."""
+        check_layout(f, self.path, _SHARD, FORMAT, FORMAT_VERSION, _DATASETS, _ATTRS)
         self.source: str = f.attrs["source"]
         self.fps = int(f.attrs["fps"])
         self.action_names: list[str] = json.loads(f.attrs["action_names"])
@@ -222,12 +342,25 @@ class Shard:
         self._captions: list[list[Caption]] = [[] for _ in self.names]
         for i, c in enumerate(cap_clip):
             self._captions[c].append(Caption(texts[i], tokens[i], float(starts[i]), float(ends[i])))
-        self._features = f["features"][()] if in_memory else f["features"]
+        self._features = f["features"]
+        self._compressed = self._features.compression is not None
+        if in_memory:
+            self._features = self._all_features()
         self.attrs = dict(f.attrs)
+
+    def _all_features(self) -> np.ndarray:
+        """Every frame at once; a damaged chunk is reported with the first clip whose frames it holds."""
+        try:
+            return self._features[()]
+        except (OSError, RuntimeError):
+            for i in range(len(self)):
+                self.features(i)
+            raise
 
     @property
     def provenance(self) -> dict:
-        return json.loads(self._file["provenance"][()])
+        with reading(self.path, _SHARD):
+            return json.loads(self._file["provenance"][()])
 
     def __len__(self) -> int:
         return len(self.names)
@@ -241,7 +374,12 @@ class Shard:
         n = int(self.lengths[i])
         stop = n if stop is None else min(stop, n)
         o = int(self.offsets[i])
-        return np.asarray(self._features[o + start : o + stop], dtype=np.float32)
+        try:
+            x = self._features[o + start : o + stop]
+        except (OSError, RuntimeError) as e:
+            damage = f"corrupt compressed data: {_reason(e)}" if self._compressed else _reason(e)
+            raise DataFileError(f"{self.path}: clip {self.names[i]} (index {i}): unreadable features ({damage})") from None
+        return np.asarray(x, dtype=np.float32)
 
     def captions(self, i: int) -> list[Caption]:
         return list(self._captions[i])
@@ -266,8 +404,8 @@ class Shard:
 
 def summarize(path: str | os.PathLike) -> dict:
     """What ``lsgan inspect`` prints: clips, frames, hours, captions, splits, labels and feature stats."""
-    with Shard(path) as shard:
-        lengths = shard.lengths
+    with Shard(path) as shard, reading(path, _SHARD):
+        lengths = shard.lengths if len(shard) else np.zeros(1, np.int64)
         splits = {s: int((shard.splits == s).sum()) for s in sorted(set(shard.splits.tolist()))}
         actions: dict[str, int] = {}
         for a in shard.actions:
@@ -278,7 +416,7 @@ def summarize(path: str | os.PathLike) -> dict:
             "path": str(shard.path),
             "source": shard.source,
             "format_version": int(shard.attrs["format_version"]),
-            "lsgan_version": str(shard.attrs["lsgan_version"]),
+            "lsgan_version": str(shard.attrs.get("lsgan_version", "unknown")),
             "clips": len(shard),
             "mirrored": sum(1 for m in shard.mirror_of if m),
             "frames": int(lengths.sum()),

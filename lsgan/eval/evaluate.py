@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from lsgan.eval import metrics as M
+from lsgan import outputs
 from lsgan.io import atomic_file
 
 T2M_COLUMNS = ("r_precision_top1", "r_precision_top2", "r_precision_top3", "fid", "mm_dist", "diversity",
@@ -66,10 +67,16 @@ class Table:
         return "\n".join(lines)
 
 
-def write_table(table: Table, out: str | Path) -> tuple[Path, Path]:
-    """``out.md`` and ``out.json`` (atomic)."""
+def claim_table(out: str | Path, *, force: bool = False) -> tuple[Path, Path]:
+    """The table's two files, ``out.md`` and ``out.json``, once it is clear they may be written."""
     out = Path(out)
     md, js = out.with_suffix(".md"), out.with_suffix(".json")
+    return outputs.claim_file(md, force=force), outputs.claim_file(js, force=force)
+
+
+def write_table(table: Table, out: str | Path, *, force: bool = False) -> tuple[Path, Path]:
+    """``out.md`` and ``out.json`` (atomic; existing ones only with ``force``, and only lsgan's)."""
+    md, js = claim_table(out, force=force)
     with atomic_file(md, "w", encoding="utf-8") as fh:
         fh.write(table.to_markdown() + "\n")
     with atomic_file(js, "w", encoding="utf-8") as fh:

@@ -51,8 +51,14 @@ def tsne_2d(points: np.ndarray, *, seed: int = 0, perplexity: float = 30.0) -> n
 
 def plot_latents(cache: str | Path, model: str | Path, out: str | Path, *, split: str = "test",
                  per_class: int = 50, seed: int = 0, device: str = "auto", steps: int | None = None,
-                 guidance: float | None = None, title: str | None = None) -> Path:
-    """Write the PNG: real latents as dots, generated ones as crosses, one colour per action."""
+                 guidance: float | None = None, title: str | None = None, force: bool = False) -> Path:
+    """Write the PNG: real latents as dots, generated ones as crosses, one colour per action.
+
+    An existing ``out`` is refused unless ``force`` (and then only replaced when lsgan wrote it).
+    """
+    from lsgan import outputs
+
+    outputs.claim_file(out, force=force, inputs=[cache, model])
     import matplotlib
 
     matplotlib.use("Agg")

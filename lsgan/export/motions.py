@@ -10,6 +10,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from lsgan import outputs
 from lsgan.export.bvh import load_motion_joints
 
 FORMATS = ("glb", "bvh", "gif", "mp4")
@@ -36,13 +37,14 @@ def manifest_titles(source: Path) -> dict[str, str]:
 
 def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: float = 20.0,
                    title: str | None = None, body_model: str | Path | None = None, gender: str = "neutral",
-                   model_type: str = "auto", fit_iterations: int = 100) -> list[Exported]:
+                   model_type: str = "auto", fit_iterations: int = 100, force: bool = False) -> list[Exported]:
     """Write each motion of ``source`` as ``fmt`` under ``output`` (a file when ``source`` holds one motion
     and ``output`` ends in the format's extension, else a folder).
 
     With ``body_model`` (GLB only) the body is fitted to each motion and written as one skinned mesh, with
     the fitted parameters beside it as ``<stem>.npz``. Raises ValueError / ClipError / BodyModelError /
-    EncodeError with a message naming the file and the problem.
+    EncodeError with a message naming the file and the problem. An existing output is refused unless
+    ``force``, which replaces only files lsgan wrote (see :mod:`lsgan.outputs`).
     """
     from lsgan.data.body_model import read_body_model
     from lsgan.export.body import fit_body, write_fit_npz
@@ -60,9 +62,16 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
     motions = load_motion_joints(source)
     ext = f".{fmt}"
     single = len(motions) == 1 and out.suffix.lower() == ext
+    paths = [out if single else out / f"{name.removesuffix('_joints')}{ext}" for name, _ in motions]
+    if not single:
+        outputs.claim_folder(out, force=force, inputs=[source])
+    for path in paths:
+        outputs.claim_file(path, force=force or not single, inputs=[source])
+        if model is not None:
+            outputs.claim_file(path.with_suffix(".npz"), force=force or not single, inputs=[source])
     results = []
-    for name, joints in tqdm(motions, desc=f"export {fmt}", unit="motion", disable=len(motions) < 2):
-        path = out if single else out / f"{name.removesuffix('_joints')}{ext}"
+    for path, (name, joints) in tqdm(list(zip(paths, motions)), desc=f"export {fmt}", unit="motion",
+                                     disable=len(motions) < 2):
         if model is not None:
             fit = fit_body(joints, model, iterations=fit_iterations, fps=fps)
             write_body_glb(path, fit, model)

@@ -24,7 +24,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lsgan.data.skeleton import KINEMATIC_CHAIN, NUM_JOINTS
-from lsgan.io import atomic_file, atomic_path
+from lsgan.io import atomic_file, atomic_path, publish
 
 BACKGROUND = (255, 255, 255)
 GRID_COLOUR = (205, 205, 205)
@@ -312,7 +312,7 @@ def write_mp4(path, joints, *, title: str = "", fps: float = 20.0, size: int = 4
                 log.seek(0)
                 message = log.read().decode(errors="replace").strip()[-2000:]
                 raise EncodeError(f"ffmpeg failed (exit code {code}) writing {path}: {message}")
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

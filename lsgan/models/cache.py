@@ -8,9 +8,12 @@ The GAN trains from this file alone (it never runs the VAE). Layout (format ``ls
     /captions/embedding (M, D) float32      one row per caption, from the text encoder named in the attrs
     /stats/mean, /stats/std (Z,) float32    per-dimension statistics of the train clips' mu (GAN standardisation)
 
-Root attributes: format, format_version, lsgan_version, vae_hash (SHA-256 of the VAE weights), vae_path,
-text_encoder (its id, '' when none), text_dim, latent_dim, action_names (JSON), data (the shard paths),
-window (how clips longer than the VAE's window were handled).
+Root attributes: format, format_version, lsgan_version, vae_hash (SHA-256 of the VAE weights), vae_path
+(the VAE checkpoint folder, absolute; as given on the command line in older caches), text_encoder (its id,
+'' when none), text_dim, latent_dim, action_names (JSON), data (the shard paths), window (how clips longer
+than the VAE's window were handled).
+
+A cache that cannot be read or written raises DataFileError (a ValueError) starting with its path.
 """
 from __future__ import annotations
 
@@ -24,14 +27,21 @@ import h5py
 import numpy as np
 
 from lsgan import __version__
-from lsgan.io import atomic_path
+from lsgan.data.shards import DataFileError, check_layout, check_writable, open_hdf5, reading, writing
+from lsgan.faults import fault_point
+from lsgan.io import atomic_path, publish
 
 FORMAT = "lsgan-latent-cache"
 FORMAT_VERSION = 1
 _STR = h5py.string_dtype("utf-8")
+_CACHE = "an lsgan latent cache"
+_HINT = "caches are made by `lsgan encode-latents`"
+_DATASETS = ("clips/name", "clips/split", "clips/action", "clips/length", "latents/mu", "latents/logvar",
+             "captions/clip", "captions/text", "captions/embedding", "stats/mean", "stats/std")
+_ATTRS = ("format_version", "vae_hash", "text_encoder", "action_names")
 
 
-class StaleCache(ValueError):
+class StaleCache(DataFileError):
     """The cache was made with another VAE checkpoint or text encoder than the one in use."""
 
 
@@ -89,7 +99,9 @@ def write_latent_cache(
     emb = np.asarray(caption_embedding, np.float32)
     emb = emb.reshape(len(caption_text), -1) if emb.size else np.zeros((len(caption_text), 0), np.float32)
     mean, std = latent_stats(mu, splits)
-    fd, tmp = atomic_path(path)
+    check_writable(path)
+    with writing(path):
+        fd, tmp = atomic_path(path)
     os.close(fd)
     try:
         with h5py.File(tmp, "w") as f:
@@ -101,6 +113,7 @@ def write_latent_cache(
             g = f.create_group("latents")
             g.create_dataset("mu", data=mu)
             g.create_dataset("logvar", data=logvar)
+            fault_point("cache.write")
             g = f.create_group("captions")
             g.create_dataset("clip", data=np.asarray(caption_clip, np.int32))
             g.create_dataset("text", data=np.array(caption_text, dtype=object), dtype=_STR)
@@ -114,7 +127,8 @@ def write_latent_cache(
                 latent_dim=int(mu.shape[1]), action_names=json.dumps(action_names),
                 data=json.dumps(data or []), window=window,
             )
-        os.replace(tmp, path)
+        with writing(path):
+            publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -128,9 +142,8 @@ def _strings(ds) -> list[str]:
 
 def read_cache_attrs(path: str | os.PathLike) -> dict:
     """The root attributes of a cache (cheap: no arrays are read)."""
-    with h5py.File(path, "r") as f:
-        if f.attrs.get("format") != FORMAT:
-            raise ValueError(f"{path}: not an lsgan latent cache (made by `lsgan encode-latents`)")
+    with open_hdf5(path) as f, reading(path, _CACHE):
+        check_layout(f, path, _CACHE, FORMAT, FORMAT_VERSION, _DATASETS, _ATTRS, _HINT)
         return dict(f.attrs)
 
 
@@ -139,13 +152,8 @@ def read_latent_cache(
 ) -> LatentCacheData:
     """Load a cache; refuse it (StaleCache) when it was made with another VAE or text encoder than expected."""
     path = Path(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise ValueError(f"{path}: not a readable HDF5 file ({e})") from None
-    with f:
-        if f.attrs.get("format") != FORMAT:
-            raise ValueError(f"{path}: not an lsgan latent cache (made by `lsgan encode-latents`)")
+    with open_hdf5(path) as f, reading(path, _CACHE):
+        check_layout(f, path, _CACHE, FORMAT, FORMAT_VERSION, _DATASETS, _ATTRS, _HINT)
         attrs = dict(f.attrs)
         if expect_vae_hash is not None and attrs["vae_hash"] != expect_vae_hash:
             raise StaleCache(
@@ -176,6 +184,52 @@ def read_latent_cache(
         )
 
 
+def _recorded_vae(cache: Path, recorded: str) -> Path | None:
+    """The checkpoint folder at the path the cache records (a relative one, from older caches, against the
+    cache's folder, then the working directory), or None."""
+    from lsgan.models.checkpoint import resolve
+
+    if not recorded:
+        return None
+    p = Path(recorded)
+    for candidate in [p] if p.is_absolute() else [cache.resolve().parent / p, p]:
+        try:
+            return resolve(candidate)
+        except FileNotFoundError:
+            continue
+    return None
+
+
+def check_cache_vae(cache: str | os.PathLike, vae: str | os.PathLike | None = None,
+                    allow_stale: bool = False) -> str | None:
+    """Check that ``cache`` was encoded with the VAE ``vae`` (a run or checkpoint folder), else with the VAE
+    at the path the cache records; returns the VAE hash to expect when reading it (None with ``allow_stale``).
+
+    Raises StaleCache when the weights differ, DataFileError when the recorded VAE is not found.
+    """
+    from lsgan.models.checkpoint import resolve, weights_hash
+
+    if allow_stale:
+        return None
+    cache = Path(cache)
+    attrs = read_cache_attrs(cache)
+    recorded, expected = str(attrs.get("vae_path", "")), str(attrs["vae_hash"])
+    if vae is not None:
+        folder = resolve(vae, Path(recorded).name if Path(recorded).name in ("best", "last") else "best")
+    else:
+        folder = _recorded_vae(cache, recorded)
+        if folder is None:
+            missing = f"{recorded} not found (moved?)" if recorded else "it records no VAE path"
+            raise DataFileError(f"{cache}: cannot check that the cache matches its VAE: {missing}; "
+                                "pass --vae RUN (or --allow-stale)")
+    actual = weights_hash(folder)
+    if actual != expected:
+        raise StaleCache(f"{cache} was encoded with another VAE than {folder}: the cache's VAE weights have sha256 "
+                         f"{expected}, these {actual}; run `lsgan encode-latents` again with this VAE "
+                         "(or pass --allow-stale)")
+    return expected
+
+
 WINDOW_POLICY = (
     "one entry per training window (as MotionDataset builds them: each captioned time span is its own "
     "window, whole-clip captions share the full clip); windows longer than max_frames are centre-cropped "
@@ -195,77 +249,95 @@ def encode_latents(
     batch_size: int = 64,
     device: str = "auto",
     progress: bool = True,
+    force: bool = False,
 ) -> Path:
     """Encode every window of every split once with the VAE (mean, log-variance) and every caption once
     with the text encoder, into a latent cache the GAN trains from (see :data:`WINDOW_POLICY`).
 
-    ``text_encoder=None`` stores no caption embeddings (action-conditioned data).
+    ``text_encoder=None`` stores no caption embeddings (action-conditioned data). An existing ``out`` is
+    refused unless ``force`` (and then only replaced when lsgan wrote it).
     """
-    import torch
-    from tqdm import tqdm
-
+    from lsgan import outputs
     from lsgan.data.dataset import MotionDataset
     from lsgan.models.checkpoint import resolve, weights_hash
     from lsgan.models.vae import load_vae
     from lsgan.train.common import pick_device
 
+    sources = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    outputs.claim_file(out, force=force, inputs=[*sources, vae])
+    check_writable(out)
     dev = pick_device(device)
     model, meta = load_vae(vae, device=dev)
     ds = MotionDataset(data, split=None, min_frames=min_frames, max_frames=max_frames, crop_long=True,
                        mean=meta["mean"], std=meta["std"])
     if len(ds) == 0:
         raise ValueError(f"{data}: no clip of {min_frames} frames or more to encode")
-    spans = []
-    for w in ds.windows:
-        n = min(w.stop - w.start, max_frames)
-        n = max(4, n // 4 * 4) if n >= 4 else n
-        start = w.start + (w.stop - w.start - n) // 2
-        spans.append((start, start + n))
-    order = sorted(range(len(ds.windows)), key=lambda i: spans[i][1] - spans[i][0])
-    mu = np.zeros((len(ds.windows), model.config.latent_dim), np.float32)
-    logvar = np.zeros_like(mu)
-    bar = tqdm(total=len(order), desc="encode latents", unit="window", disable=not progress or None, file=sys.stderr)
-    with torch.no_grad():
-        for b in range(0, len(order), batch_size):
-            idx = order[b : b + batch_size]
-            xs = []
-            for i in idx:
-                w = ds.windows[i]
-                x = ds._shard(w.shard).features(w.clip, *spans[i])
-                xs.append(torch.from_numpy((x - ds.mean) / ds.std))
-            lengths = torch.tensor([len(x) for x in xs])
-            batch = torch.nn.utils.rnn.pad_sequence(xs, batch_first=True).to(dev)
-            mask = (torch.arange(batch.shape[1])[None] < lengths[:, None]).to(dev)
-            m, lv = model.encode(batch, mask)
-            mu[idx], logvar[idx] = m.float().cpu().numpy(), lv.float().cpu().numpy()
-            bar.update(len(idx))
-    bar.close()
-
-    names, splits, actions, lengths = [], [], [], []
-    cap_clip, cap_text = [], []
+    spans = _window_spans(ds, max_frames)
+    mu, logvar = _encode_windows(model, ds, spans, batch_size, dev, progress)
+    names, splits, actions, cap_clip, cap_text = [], [], [], [], []
     for i, w in enumerate(ds.windows):
         name = ds.names[w.shard][w.clip]
         full = w.start == 0 and w.stop == ds._shard(w.shard).lengths[w.clip]
         names.append(name if full else f"{name}#{w.start}-{w.stop}")
         splits.append(ds._shard(w.shard).splits[w.clip])
         actions.append(int(ds.actions[w.shard][w.clip]))
-        lengths.append(spans[i][1] - spans[i][0])
         for k in w.captions:
             cap_clip.append(i)
             cap_text.append(ds.captions[w.shard][w.clip][k].text)
-    encoder_id, emb = "", np.zeros((len(cap_text), 0), np.float32)
-    if text_encoder is not None and cap_text:
-        from lsgan.models.text import load_text_encoder
-
-        enc = load_text_encoder(text_encoder, path=text_encoder_path, device=dev)
-        unique = sorted(set(cap_text))
-        table = enc.encode(unique).float().cpu().numpy()
-        row = {t: j for j, t in enumerate(unique)}
-        emb = table[[row[t] for t in cap_text]]
-        encoder_id = enc.id
+    encoder_id, emb = _embed_captions(cap_text, text_encoder, text_encoder_path, dev)
     return write_latent_cache(
-        out, names=names, splits=np.array(splits), actions=np.array(actions), lengths=np.array(lengths),
-        mu=mu, logvar=logvar, caption_clip=np.array(cap_clip, dtype=np.int64), caption_text=cap_text,
-        caption_embedding=emb, action_names=ds.action_names, vae_hash=weights_hash(vae),
-        vae_path=str(resolve(vae)), text_encoder=encoder_id, data=[str(p) for p in ds.paths], window=WINDOW_POLICY,
+        out, names=names, splits=np.array(splits), actions=np.array(actions),
+        lengths=np.array([b - a for a, b in spans]), mu=mu, logvar=logvar,
+        caption_clip=np.array(cap_clip, dtype=np.int64), caption_text=cap_text, caption_embedding=emb,
+        action_names=ds.action_names, vae_hash=weights_hash(vae), vae_path=str(resolve(vae).resolve()),
+        text_encoder=encoder_id, data=[str(p) for p in ds.paths], window=WINDOW_POLICY,
     )
+
+
+def _window_spans(ds, max_frames: int) -> list[tuple[int, int]]:
+    """Each window centre-cropped to ``max_frames`` and rounded down to a multiple of 4 frames."""
+    spans = []
+    for w in ds.windows:
+        n = min(w.stop - w.start, max_frames)
+        n = max(4, n // 4 * 4) if n >= 4 else n
+        start = w.start + (w.stop - w.start - n) // 2
+        spans.append((start, start + n))
+    return spans
+
+
+def _encode_windows(model, ds, spans, batch_size: int, dev, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(mu, logvar) of every window, in batches of similar length."""
+    import torch
+    from tqdm import tqdm
+
+    order = sorted(range(len(spans)), key=lambda i: spans[i][1] - spans[i][0])
+    mu = np.zeros((len(spans), model.config.latent_dim), np.float32)
+    logvar = np.zeros_like(mu)
+    bar = tqdm(total=len(order), desc="encode latents", unit="window", disable=not progress or None, file=sys.stderr)
+    with torch.no_grad():
+        for b in range(0, len(order), batch_size):
+            idx = order[b : b + batch_size]
+            xs = [torch.from_numpy((ds._shard(ds.windows[i].shard).features(ds.windows[i].clip, *spans[i])
+                                    - ds.mean) / ds.std) for i in idx]
+            lengths = torch.tensor([len(x) for x in xs])
+            batch = torch.nn.utils.rnn.pad_sequence(xs, batch_first=True).to(dev)
+            mask = (torch.arange(batch.shape[1])[None] < lengths[:, None]).to(dev)
+            m, lv = model.encode(batch, mask)
+            mu[idx], logvar[idx] = m.float().cpu().numpy(), lv.float().cpu().numpy()
+            bar.update(len(idx))
+            fault_point("encode.batch")
+    bar.close()
+    return mu, logvar
+
+
+def _embed_captions(texts: list[str], text_encoder: str | None, path: str | None, dev) -> tuple[str, np.ndarray]:
+    """(encoder id, one embedding row per caption); each distinct text is encoded once."""
+    if text_encoder is None or not texts:
+        return "", np.zeros((len(texts), 0), np.float32)
+    from lsgan.models.text import load_text_encoder
+
+    enc = load_text_encoder(text_encoder, path=path, device=dev)
+    unique = sorted(set(texts))
+    table = enc.encode(unique).float().cpu().numpy()
+    row = {t: j for j, t in enumerate(unique)}
+    return enc.id, table[[row[t] for t in texts]]

@@ -8,18 +8,25 @@
     run/best/...                 the same for the best checkpoint so far (by the run's validation metric)
 
 Each folder is written beside its final place and renamed, so a crash never leaves half a checkpoint.
+A file that holds anything but tensors and plain values, or is truncated or corrupt, raises a ValueError
+naming it (never torch's suggestion to load it with ``weights_only=False``).
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import pickle
+import re
 from pathlib import Path
+from typing import Any
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from lsgan import __version__
+from lsgan.faults import fault_point
 from lsgan.io import atomic_folder
 
 WEIGHTS, CONFIG, STATE = "model.safetensors", "config.json", "state.pt"
@@ -43,6 +50,7 @@ def save_checkpoint(
         (tmp / CONFIG).write_text(json.dumps(meta, indent=1, sort_keys=True))
         if state is not None:
             torch.save(state, tmp / STATE)
+        fault_point("checkpoint.write")
     return Path(folder)
 
 
@@ -58,18 +66,66 @@ def resolve(path: str | os.PathLike, prefer: str = "best") -> Path:
     raise FileNotFoundError(f"{path}: no checkpoint here (expected {CONFIG} and {WEIGHTS}, or best/ or last/ holding them)")
 
 
+def _read_config(folder: Path) -> dict:
+    path = folder / CONFIG
+    try:
+        meta = json.loads(path.read_text())
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"{path}: truncated or corrupt ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: truncated or corrupt (a JSON {type(meta).__name__}, not an object)")
+    return meta
+
+
+def _read_weights(folder: Path) -> dict[str, torch.Tensor]:
+    path = folder / WEIGHTS
+    try:
+        return load_file(path)
+    except SafetensorError as exc:
+        raise ValueError(f"{path}: truncated or corrupt ({exc})") from exc
+
+
 def read_meta(path: str | os.PathLike, prefer: str = "best") -> dict:
-    folder = resolve(path, prefer)
-    return json.loads((folder / CONFIG).read_text())
+    return _read_config(resolve(path, prefer))
 
 
 def load_weights(path: str | os.PathLike, prefer: str = "best", kind: str | None = None) -> tuple[dict, dict]:
     """(state_dict, meta) of a checkpoint; ``kind`` checks what it holds (e.g. 'vae')."""
     folder = resolve(path, prefer)
-    meta = json.loads((folder / CONFIG).read_text())
+    meta = _read_config(folder)
     if kind is not None and meta.get("kind") != kind:
         raise ValueError(f"{folder}: holds a {meta.get('kind')!r} checkpoint, not a {kind!r} one")
-    return load_file(folder / WEIGHTS), meta
+    return _read_weights(folder), meta
+
+
+def _torch_error_detail(text: str) -> str:
+    """The cause in one of torch's load errors, without its advice to load the file with weights_only=False."""
+    found = re.search(r"GLOBAL (\S+)", text)
+    if found:
+        return found.group(1)
+    lines = [ln.strip() for ln in text.replace("WeightsUnpickler error:", "\n").splitlines()]
+    lines = [ln for ln in lines if ln and not re.search(r"weights_only|torch\.load|pytorch\.org", ln)]
+    return (lines[0] if lines else "no detail")[:200]
+
+
+def load_torch_file(path: str | os.PathLike) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU; ValueError naming the file when it is refused or damaged."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        detail = _torch_error_detail(str(exc))
+        if re.search(r"GLOBAL|Unsupported (global|class)|blocked|not an allowed", str(exc)):
+            raise ValueError(f"{path}: refused: it holds objects other than tensors and plain values "
+                             f"({detail})") from None
+        raise ValueError(f"{path}: truncated or corrupt ({detail})") from None
+    except RuntimeError as exc:
+        if "TorchScript" in str(exc):
+            raise ValueError(f"{path}: refused: it is a TorchScript archive, not tensors and plain values") from None
+        raise ValueError(f"{path}: truncated or corrupt ({_torch_error_detail(str(exc))})") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read it ({exc.strerror or exc})") from exc
+    except Exception as exc:  # noqa: BLE001 - whatever else a damaged file raises (EOFError, KeyError...)
+        raise ValueError(f"{path}: truncated or corrupt ({type(exc).__name__}: {exc})") from None
 
 
 def load_state(path: str | os.PathLike, prefer: str = "last") -> dict | None:
@@ -77,7 +133,7 @@ def load_state(path: str | os.PathLike, prefer: str = "last") -> dict | None:
     folder = resolve(path, prefer)
     if not (folder / STATE).exists():
         return None
-    return torch.load(folder / STATE, map_location="cpu", weights_only=True)
+    return load_torch_file(folder / STATE)
 
 
 def weights_hash(path: str | os.PathLike, prefer: str = "best") -> str:
@@ -87,7 +143,7 @@ def weights_hash(path: str | os.PathLike, prefer: str = "best") -> str:
     from one save to the next.
     """
     h = hashlib.sha256()
-    weights = load_file(resolve(path, prefer) / WEIGHTS)
+    weights = _read_weights(resolve(path, prefer))
     for name in sorted(weights):
         t = weights[name].contiguous()
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())

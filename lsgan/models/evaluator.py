@@ -46,9 +46,7 @@ Action2Motion's loader offsets each clip by its first root position).
 """
 from __future__ import annotations
 
-import hashlib
 import os
-import pickle
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
@@ -59,9 +57,11 @@ import torch
 from torch import nn
 from torch.nn.utils.rnn import pack_padded_sequence
 
-from lsgan.data.body_model import ArrayUnpickler
 from lsgan.data.skeleton import FEATURE_DIM, NUM_JOINTS
 from lsgan.data.tokens import tokenize
+from lsgan.models.checkpoint import load_torch_file
+from lsgan.outputs import file_sha256
+from lsgan.pickles import load_pickle
 
 __all__ = [
     "MAX_TEXT_LEN",
@@ -223,23 +223,12 @@ def contrastive_loss(a: torch.Tensor, b: torch.Tensor, negative: bool, margin: f
 # ----------------------------------------------------------------------------------------------------------------
 # GloVe side of the official evaluator
 
-def _load_pickle(path: Path):
-    """A pickle that may only hold arrays and builtins (anything else is refused, so no code runs)."""
-    try:
-        with open(path, "rb") as fh:
-            return ArrayUnpickler(fh, encoding="latin1").load()
-    except pickle.UnpicklingError as e:
-        raise ValueError(f"{path}: refused ({e}); it should hold only a dict or list of words") from e
-    except (OSError, EOFError, ValueError, AttributeError, TypeError) as e:
-        raise ValueError(f"{path}: not a readable pickle ({e})") from e
-
-
 class WordVectorizer:
     """T2M's word vectoriser: ``'word/POS'`` -> (300-d GloVe vector, 15-d POS one-hot).
 
     Reads ``{prefix}_data.npy`` (V,300), ``{prefix}_idx.pkl`` (dict word -> row) and ``{prefix}_words.pkl``
-    (list of words) from ``folder``; the pickles are read with an unpickler that rebuilds only
-    builtins and numpy arrays.
+    (list of words) from ``folder``; the pickles are read by :mod:`lsgan.pickles` (an exact allowlist:
+    plain values, numpy arrays and scalars), so they cannot run code.
     """
 
     def __init__(self, folder: str | os.PathLike, prefix: str = "our_vab") -> None:
@@ -249,8 +238,8 @@ class WordVectorizer:
             vectors = np.load(data_path, allow_pickle=False)
         except (OSError, ValueError) as e:
             raise ValueError(f"{data_path}: not a readable .npy array ({e})") from e
-        words = _load_pickle(folder / f"{prefix}_words.pkl")
-        word2idx = _load_pickle(folder / f"{prefix}_idx.pkl")
+        words = load_pickle(folder / f"{prefix}_words.pkl")
+        word2idx = load_pickle(folder / f"{prefix}_idx.pkl")
         if vectors.ndim != 2:
             raise ValueError(f"{data_path}: expected (V, {WORD_DIM}) word vectors, got shape {vectors.shape}")
         if not isinstance(words, (list, tuple)) or not all(isinstance(w, str) for w in words):
@@ -424,14 +413,6 @@ def _check_captions(captions: Sequence[str], tokens: Sequence[str] | None) -> li
 # ----------------------------------------------------------------------------------------------------------------
 # The official T2M evaluator
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 class T2MEvaluator(TextMotionEvaluator):
     """The released T2M text-motion matching model (``finest.tar``) with its GloVe files and Mean/Std."""
 
@@ -523,10 +504,7 @@ def load_t2m_evaluator(root: str | os.PathLike, device: str | torch.device = "cp
     if missing:
         raise FileNotFoundError(f"{root}: the official T2M evaluator needs these files, missing: "
                                 + ", ".join(str(p) for p in missing))
-    try:
-        ckpt = torch.load(paths["weights"], map_location="cpu", weights_only=True)
-    except Exception as e:  # a refused or corrupt file: say which
-        raise ValueError(f"{paths['weights']}: cannot read it as a weights-only torch checkpoint ({e})") from e
+    ckpt = load_torch_file(paths["weights"])
     if not isinstance(ckpt, dict):
         raise ValueError(f"{paths['weights']}: expected a dict of state dicts, got {type(ckpt).__name__}")
     text, movement, motion = _infer_t2m_modules(ckpt, paths["weights"])
@@ -540,7 +518,7 @@ def load_t2m_evaluator(root: str | os.PathLike, device: str | torch.device = "cp
     if vectorizer.dim != text.pos_emb.out_features:
         raise ValueError(f"{paths['glove_data']}: {vectorizer.dim}-d word vectors; the text encoder reads "
                          f"{text.pos_emb.out_features}")
-    ev_id = f"t2m-official:{_sha256(paths['weights'])[:16]}"
+    ev_id = f"t2m-official:{file_sha256(paths['weights'])[:16]}"
     return T2MEvaluator(text, movement, motion, vectorizer, mean, std, id=ev_id, device=device)
 
 

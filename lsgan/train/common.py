@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import csv
+import functools
 import math
 import os
 import random
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +15,9 @@ from typing import TypeVar
 import numpy as np
 import torch
 import torch.distributed as dist
+
+from lsgan import outputs
+from lsgan.faults import fault_point
 
 
 class TrainingDiverged(RuntimeError):
@@ -108,8 +113,30 @@ def run_distributed(device: str, body: Callable[[torch.device, Dist], R]) -> R:
     return result
 
 
+def closing_progress_bars(fn: Callable[..., R]) -> Callable[..., R]:
+    """Decorate a training loop: when it fails, its progress bars are closed first, so that the error
+    printed next starts a line of its own."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs) -> R:
+        try:
+            return fn(*args, **kwargs)
+        except BaseException:
+            from tqdm import tqdm
+
+            for bar in list(getattr(tqdm, "_instances", ())):
+                bar.close()
+            raise
+
+    return wrapper
+
+
 def check_finite(losses: dict[str, float], step: int) -> None:
-    """Stop a run whose loss is NaN/inf, naming the loss and the step."""
+    """Stop a run whose loss is NaN/inf, naming the loss and the step.
+
+    Every training loop calls this once per step, so it is also the fault tests' "a step ended" point.
+    """
+    fault_point("train.step")
     for name, value in losses.items():
         if not math.isfinite(value):
             raise TrainingDiverged(f"{name} is {value} at step {step}; stopping (the last good checkpoint is kept)")
@@ -162,3 +189,38 @@ class RunLog:
     def close(self) -> None:
         if self._tb is not None:
             self._tb.close()
+
+
+RUN_FILES = ("last", "best", "log.csv", "train.log", "tb", "heldout.json", "demo-inputs.json", outputs.REGISTRY)
+"""What a training run writes in its folder (``demo-inputs.json``: what ``lsgan demo`` started it on);
+``force`` removes these and nothing else."""
+
+
+def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
+    """Before training into ``out``: continue (``resume``) or start over (``force``) an lsgan run there.
+
+    A folder holding anything but a run's own files is refused for a new run, even with ``force``.
+    Only rank 0 looks (and clears); the other ranks of a torchrun start after it.
+    """
+    out = Path(out)
+    if int(os.environ.get("RANK", "0")) != 0 or not out.exists():
+        return
+    if not out.is_dir():
+        raise outputs.OutputError(f"{out}: exists and is not a folder; give a folder for the run")
+    names = sorted(p.name for p in out.iterdir())
+    others = [n for n in names if n not in RUN_FILES]
+    started = [n for n in names if n not in ("demo-inputs.json", outputs.REGISTRY)]
+    if resume or not started:
+        return
+    if others:
+        raise outputs.OutputError(f"{out}: holds files that are not an lsgan run's ({', '.join(others[:5])}"
+                                  f"{' ...' if len(others) > 5 else ''}); choose a new or empty folder")
+    if not force:
+        raise outputs.OutputError(f"{out}: already holds a run; pass --resume to continue it or --force to start "
+                                  "over (only the run's own files are removed)")
+    for name in RUN_FILES:
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()

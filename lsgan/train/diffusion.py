@@ -33,6 +33,7 @@ from lsgan.models.diffusion import (
     load_diffusion,
 )
 from lsgan.train.common import (
+    claim_run,
     Dist,
     RunLog,
     all_reduce_mean,
@@ -87,6 +88,7 @@ def train_diffusion(
     train: DiffusionTrainConfig | None = None,
     device: str = "auto",
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
     expect_vae_hash: str | None = None,
     expect_text_encoder: str | None = None,
@@ -97,6 +99,7 @@ def train_diffusion(
     resume: continue from ``out/last`` at its step (an existing run is never overwritten without it).
     """
     diffusion, train = diffusion or DiffusionConfig(), train or DiffusionTrainConfig()
+    claim_run(out, resume=resume, force=force)
     return run_distributed(device, lambda dev, d: _train(
         Path(cache), Path(out), diffusion, train, dev, d, resume, progress, expect_vae_hash, expect_text_encoder))
 

@@ -62,9 +62,11 @@ from lsgan.models.evaluator import (
     prepare_joints,
 )
 from lsgan.train.common import (
+    claim_run,
     RunLog,
     TrainingDiverged,
     check_finite,
+    closing_progress_bars,
     pick_device,
     seed_everything,
 )
@@ -206,6 +208,7 @@ def _start(out: Path, resume: bool, say) -> dict | None:
     return None
 
 
+@closing_progress_bars
 def _loop(*, out: Path, kind: str, desc: str, net: torch.nn.Module, opt: torch.optim.Optimizer, ds: Dataset,
           sampler: LengthBucketSampler, cfg, dev: torch.device, state: dict | None, config: dict,
           step_fn: Callable[[dict], dict[str, float]], validate: Callable[[], dict[str, float]], best_key: str,
@@ -300,6 +303,7 @@ def train_evaluator(
     train_config: EvaluatorTrainConfig | None = None,
     device: str = "auto",
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
     text_encoder_path: str | os.PathLike | None = None,
 ) -> dict:
@@ -313,6 +317,7 @@ def train_evaluator(
 
     cfg, tcfg = config or EvaluatorConfig(), train_config or EvaluatorTrainConfig()
     paths, out, dev = _paths(data), Path(out), pick_device(device)
+    claim_run(out, resume=resume, force=force)
     if tcfg.max_frames > cfg.max_motion_length:
         raise ValueError(f"train.max_frames ({tcfg.max_frames}) exceeds model.max_motion_length ({cfg.max_motion_length})")
     if tcfg.min_frames < cfg.unit_length:
@@ -476,6 +481,7 @@ def train_action_classifier(
     train_config: ActionTrainConfig | None = None,
     device: str = "auto",
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
 ) -> dict:
     """Train the action-recognition GRU on the action-labelled 'train' clips of the shards.
@@ -485,6 +491,7 @@ def train_action_classifier(
     """
     cfg, tcfg = config or ActionClassifierConfig(), train_config or ActionTrainConfig()
     paths, out, dev = _paths(data), Path(out), pick_device(device)
+    claim_run(out, resume=resume, force=force)
     say = _say_to(out)
     state = _start(out, resume, say)
     seed_everything(tcfg.seed)

@@ -40,6 +40,7 @@ from lsgan.models.gan import (
     load_gan,
 )
 from lsgan.train.common import (
+    claim_run,
     Dist,
     RunLog,
     all_reduce_mean,
@@ -140,6 +141,7 @@ def train_gan(
     train: GANTrainConfig | None = None,
     device: str = "auto",
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
     expect_vae_hash: str | None = None,
     expect_text_encoder: str | None = None,
@@ -150,6 +152,7 @@ def train_gan(
     resume: continue from ``out/last`` at its step (an existing run is never overwritten without it).
     """
     gan, train = gan or GANConfig(), train or GANTrainConfig()
+    claim_run(out, resume=resume, force=force)
 
     def body(device: torch.device, d: Dist) -> dict:
         with warnings.catch_warnings():

@@ -34,11 +34,13 @@ from lsgan.data.shards import Shard
 from lsgan.models.checkpoint import load_state, load_weights, save_checkpoint
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae, vae_loss
 from lsgan.train.common import (
+    claim_run,
     Dist,
     RunLog,
     TrainingDiverged,
     all_reduce_mean,
     check_finite,
+    closing_progress_bars,
     local_device,
     pick_device,
     seed_everything,
@@ -176,6 +178,7 @@ def train_vae(
     train: VAETrainConfig,
     device: str = "auto",
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
 ) -> dict:
     """Train a MotionVAE on the 'train' split of the shards; returns the final metrics.
@@ -185,6 +188,7 @@ def train_vae(
     """
     paths = [os.fspath(data)] if isinstance(data, (str, os.PathLike)) else [os.fspath(p) for p in data]
     out = Path(out)
+    claim_run(out, resume=resume, force=force)
     dev = pick_device(device)
     d = setup_distributed(dev)
     dev = local_device(dev, d)
@@ -196,6 +200,7 @@ def train_vae(
         teardown_distributed(d)
 
 
+@closing_progress_bars
 def _train(paths: list[str], out: Path, mcfg: VAEConfig, cfg: VAETrainConfig, dev: torch.device, d: Dist,
            resume: bool, progress: bool) -> dict:
     def say(msg: str) -> None:

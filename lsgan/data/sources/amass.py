@@ -12,16 +12,15 @@ import functools
 import io
 import logging
 import os
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
-from lsgan.data.body_model import ArrayUnpickler
 from lsgan.data.clip import ClipError, RawClip
 from lsgan.data.skeleton import FPS, NUM_JOINTS
+from lsgan.pickles import PickleReadError, load_npz, load_pickle, with_chumpy_advice
 
 logger = logging.getLogger(__name__)
 
@@ -120,48 +119,29 @@ def model_gender(value: Any) -> str:
 
 
 def _read_npz_model(path: str) -> dict[str, Any]:
-    """The model arrays of an ``.npz`` body model; only the needed keys are read, unpickling only if they need it."""
-    wanted = _MODEL_KEYS + _HAND_KEYS
-    data: dict[str, Any] = {}
-    pickled: list[str] = []
-    with np.load(path, allow_pickle=False) as npz:
-        for key in wanted:
-            if key not in npz.files:
-                continue
-            try:
-                data[key] = npz[key]
-            except ValueError:
-                pickled.append(key)
-    if pickled:
-        logger.warning("unpickling %s from body model %s (pickles can run code: only use model files you trust)",
-                       ", ".join(pickled), path)
-        with np.load(path, allow_pickle=True) as npz:
-            for key in pickled:
-                value = npz[key]
-                data[key] = value.item() if value.ndim == 0 else value
-    return data
+    """The model arrays of an ``.npz`` body model (only the needed keys); 0-d object entries are unwrapped.
+
+    Pickled (object) entries go through :func:`lsgan.pickles.load_npz`'s allowlist, never ``allow_pickle``.
+    """
+    return {k: v.item() if v.dtype == object and v.ndim == 0 else v
+            for k, v in load_npz(path, _MODEL_KEYS + _HAND_KEYS).items()}
 
 
 def read_body_model_file(path: str) -> dict[str, Any]:
     """The arrays of an SMPL-H model file (``.npz`` or smplx's chumpy-free ``.pkl``), checked for SMPL-H shape.
 
-    ``.pkl`` files are read with :class:`ArrayUnpickler`, which rebuilds arrays only and refuses other objects.
-    Hand PCA entries missing from AMASS's model.npz are filled with identity/zeros; they are unused
-    because the hand pose is taken as raw axis-angle (``use_pca=False, flat_hand_mean=True``).
+    Pickles are read by :mod:`lsgan.pickles`, which rebuilds arrays and sparse matrices only and refuses
+    any other global, so a model file cannot run code. Hand PCA entries missing from AMASS's model.npz
+    are filled with identity/zeros; they are unused because the hand pose is taken as raw axis-angle
+    (``use_pca=False, flat_hand_mean=True``).
     """
     try:
-        if path.endswith(".pkl"):
-            with open(path, "rb") as fh:
-                data = dict(ArrayUnpickler(fh, encoding="latin1").load())
-        else:
-            data = _read_npz_model(path)
-    except pickle.UnpicklingError as exc:
-        raise ClipError(
-            f"cannot read SMPL-H model {path}: {exc}; original MANO pickles hold chumpy "
-            "objects: convert them with smplx's tools/merge_smplh_mano.py or use AMASS's model.npz"
-        ) from exc
-    except (OSError, ValueError, EOFError, AttributeError) as exc:
-        raise ClipError(f"cannot read SMPL-H model {path}: {exc}") from exc
+        data = load_pickle(path) if path.endswith(".pkl") else _read_npz_model(path)
+    except PickleReadError as exc:
+        raise ClipError(with_chumpy_advice(exc, "original MANO pickles hold chumpy objects: convert them with "
+                                                "smplx's tools/merge_smplh_mano.py or use AMASS's model.npz")) from exc
+    if not isinstance(data, dict):
+        raise ClipError(f"{path} is not an SMPL-H model file: it holds a {type(data).__name__}, not a dict")
     missing = [k for k in _MODEL_KEYS if k not in data]
     if missing:
         raise ClipError(f"{path} is not an SMPL-H model file: missing {', '.join(missing)}")

@@ -95,6 +95,7 @@ class BvhSource:
         return jmap if self.scale is None else replace(jmap, scale=float(self.scale))
 
     def scan(self) -> list[str]:
+        self._map()  # a broken joint map stops the run here, once, instead of failing every clip
         root = Path(self.root)
         if root.is_file():
             return [str(root)]

@@ -1,14 +1,13 @@
 """HumanAct12 (``humanact12poses.pkl``): 1,191 action-labelled clips of SMPL joints at 20 fps.
 
-The file is a pickle, and unpickling can run arbitrary code: it is only ever read from the path the
-user names (``--humanact12 PATH``), never searched for or downloaded.
+The file is a pickle (a dict of lists of numpy arrays and ints). It is read by :mod:`lsgan.pickles`,
+which rebuilds only arrays from an exact allowlist of globals and refuses anything else, so the file
+cannot run code; it is only read from the path the user names, never searched for or downloaded.
 """
 from __future__ import annotations
 
 import functools
-import logging
 import os
-import pickle
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -17,8 +16,7 @@ import numpy as np
 from lsgan.data.clip import ClipError, RawClip
 from lsgan.data.skeleton import LEFT_FOOT, NUM_JOINTS, RIGHT_FOOT
 from lsgan.data.sources.amass import z_up_to_y_up
-
-logger = logging.getLogger(__name__)
+from lsgan.pickles import load_pickle
 
 ACTIONS: tuple[str, ...] = (
     "warm_up", "walk", "run", "jump", "drink", "lift_dumbbell", "sit", "eat", "turn_steering_wheel",
@@ -57,9 +55,8 @@ def resolve_pickle(path: str) -> str:
 
 @functools.lru_cache(maxsize=2)
 def _read_pickle(path: str, mtime_ns: int) -> dict[str, Any]:
-    logger.warning("unpickling %s: pickle files can run code, only load HumanAct12 from a copy you trust", path)
-    with open(path, "rb") as fh:
-        data = pickle.load(fh)
+    """The checked HumanAct12 dict; PickleReadError (a ValueError naming the file) for a refused or damaged one."""
+    data = load_pickle(path)
     if not isinstance(data, dict) or any(k not in data for k in ("joints3D", "y")):
         raise ValueError(f"{path}: expected a dict with 'joints3D' and 'y' (the HumanAct12 layout)")
     if len(data["joints3D"]) != len(data["y"]):

@@ -93,6 +93,12 @@ class HumanML3DSource:
             return None
         return np.load(root / "Mean.npy").astype(np.float32), np.load(root / "Std.npy").astype(np.float32)
 
+    def item_files(self, item: str) -> list[str]:
+        """The clip's features and caption files (those that exist): what a resume compares."""
+        root = Path(self.root)
+        return [os.fspath(p) for p in (root / "new_joint_vecs" / f"{item}.npy", root / "texts" / f"{item}.txt")
+                if p.is_file()]
+
     def load(self, item: str) -> list[RawClip]:
         root = Path(self.root)
         path = root / "new_joint_vecs" / f"{item}.npy"

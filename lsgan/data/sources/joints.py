@@ -34,6 +34,12 @@ class JointsSource:
         root = Path(self.root)
         return [os.fspath(root / f"{s}.txt") for s in ("train", "val", "test") if (root / f"{s}.txt").exists()]
 
+    def item_files(self, item: str) -> list[str]:
+        """The joints file and its caption file (when there is one): what a resume compares."""
+        path = Path(item)
+        text = (Path(self.texts) if self.texts else path.parent / "texts") / f"{path.stem}.txt"
+        return [item] + ([os.fspath(text)] if text.is_file() else [])
+
     def load(self, item: str) -> list[RawClip]:
         path = Path(item)
         joints = load_npy(path)

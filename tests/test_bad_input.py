@@ -1,0 +1,454 @@
+"""Bad input and faults through the real command line, one table row each.
+
+Every row builds its inputs in a fresh folder (real files: BVH, .npy, HDF5, checkpoints of a tiny real
+pipeline), runs ``lsgan`` as a user would, and checks: the exit code; one ``error:`` line on stderr that
+holds the expected phrase; no traceback; and that no file that existed before the command was changed
+or removed (in the row's folder and in the shared tiny pipeline).
+"""
+from __future__ import annotations
+
+import gzip
+import hashlib
+import io
+import json
+import os
+import pickle
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from cli_runs import TINY_RECIPE, lsgan
+
+from lsgan.data.skeleton import JOINT_NAMES
+from lsgan.data.synthetic import generate as synthetic_clips
+from lsgan.export.bvh import write_bvh
+
+pytestmark = pytest.mark.slow
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory) -> Path:
+    """A tiny real pipeline: shard, VAE, latent cache, GAN and one generate folder (read-only for the rows)."""
+    d = tmp_path_factory.mktemp("pipe")
+    (d / "tiny.yaml").write_text(TINY_RECIPE)
+    for step in [
+        ("preprocess", "--source", "synthetic", "--num-clips", 40, "-o", "synth.h5"),
+        ("train-vae", "--data", "synth.h5", "--recipe", "tiny.yaml", "--out", "vae"),
+        ("encode-latents", "--data", "synth.h5", "--vae", "vae", "-o", "cache.h5"),
+        ("train-gan", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--out", "gan"),
+        ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--frames", 40, "-o", "gen"),
+    ]:
+        out = lsgan(*step, cwd=d)
+        assert out.returncode == 0, f"{step[0]} failed:\n{out.stderr[-3000:]}"
+    return d
+
+
+def snapshot(*folders: Path) -> dict[Path, str]:
+    """SHA-256 of every file under the folders."""
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest()
+            for f in folders for p in sorted(f.rglob("*")) if p.is_file()}
+
+
+# ---- inputs -------------------------------------------------------------------------------------------------
+
+IDENTITY_MAP = {"joints": {n: n for n in JOINT_NAMES}, "scale": 0.01, "up": "y"}
+
+
+def good_joints(n: int = 1, seed: int = 0) -> list[np.ndarray]:
+    return [c.joints for c in synthetic_clips(n, seed=seed)]
+
+
+def bvh_folder(w: Path, n: int = 3) -> Path:
+    """Real BVH files (our exporter's 22-joint skeleton) and a joint map naming its joints."""
+    d = w / "bvh"
+    d.mkdir()
+    for i, j in enumerate(good_joints(n)):
+        write_bvh(d / f"clip{i}.bvh", j)
+    (w / "map.json").write_text(json.dumps(IDENTITY_MAP))
+    return d
+
+
+def truncated_bvh(w: Path) -> list:
+    d = bvh_folder(w)
+    for p in d.glob("*.bvh"):
+        text = p.read_text()
+        p.write_text(text[: text.index("MOTION") + len("MOTION\nFrames: 120\nFrame Time: 0.05\n") + 40])
+    return ["preprocess", "--source", "bvh", "--joint-map", w / "map.json", d, "-o", w / "out.h5"]
+
+
+def nan_bvh(w: Path) -> list:
+    d = bvh_folder(w)
+    for p in d.glob("*.bvh"):
+        head, motion = p.read_text().split("MOTION", 1)
+        lines = motion.splitlines()
+        lines[3] = " ".join(["nan"] * len(lines[3].split()))
+        p.write_text(head + "MOTION" + "\n".join(lines) + "\n")
+    return ["preprocess", "--source", "bvh", "--joint-map", w / "map.json", d, "-o", w / "out.h5"]
+
+
+def malformed_map(w: Path) -> list:
+    d = bvh_folder(w)
+    (w / "map.json").write_text('{"joints": {"pelvis": "pelvis",')
+    return ["preprocess", "--source", "bvh", "--joint-map", w / "map.json", d, "-o", w / "out.h5"]
+
+
+def map_missing_joint(w: Path) -> list:
+    d = bvh_folder(w)
+    m = json.loads(json.dumps(IDENTITY_MAP))
+    del m["joints"]["left_wrist"]
+    (w / "map.json").write_text(json.dumps(m))
+    return ["preprocess", "--source", "bvh", "--joint-map", w / "map.json", d, "-o", w / "out.h5"]
+
+
+def gz_not_gzip(w: Path) -> list:
+    d = bvh_folder(w, 1)
+    (d / "clip0.bvh.gz").write_bytes(b"not gzip at all")
+    (d / "clip0.bvh").unlink()
+    return ["preprocess", "--source", "bvh", "--joint-map", w / "map.json", d, "-o", w / "out.h5"]
+
+
+def joints_dir(w: Path, files: dict[str, bytes | np.ndarray]) -> Path:
+    d = w / "joints"
+    d.mkdir()
+    for name, content in files.items():
+        if isinstance(content, np.ndarray):
+            np.save(d / name, content)
+        else:
+            (d / name).write_bytes(content)
+    return d
+
+
+def zero_byte_npy(w: Path) -> list:
+    d = joints_dir(w, {"a.npy": b"", "b.npy": b""})
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5"]
+
+
+def pickled_npy(w: Path) -> list:
+    d = w / "joints"
+    d.mkdir()
+    np.save(d / "obj.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5"]
+
+
+def strict_one_bad(w: Path) -> list:
+    d = joints_dir(w, {"good.npy": good_joints()[0], "short.npy": good_joints()[0][:3]})
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5", "--strict"]
+
+
+def output_holds_inputs(w: Path) -> list:
+    """The reported case: -o DIR where DIR holds the input joints/ and the user's texts/."""
+    joints_dir(w, {"a.npy": good_joints()[0]})
+    (w / "texts").mkdir()
+    (w / "texts" / "a.txt").write_text("a person walks#a/DET person/NOUN walk/VERB#0.0#0.0\n")
+    (w / "notes.md").write_text("my notes")
+    return ["preprocess", "--source", "joints", w / "joints", "-o", w, "--format", "humanml3d", "--force"]
+
+
+def output_inside_input(w: Path) -> list:
+    d = joints_dir(w, {"a.npy": good_joints()[0]})
+    return ["preprocess", "--source", "joints", d, "-o", d / "hml", "--format", "humanml3d"]
+
+
+def output_is_user_file(w: Path, force: bool = False) -> list:
+    d = joints_dir(w, {"a.npy": good_joints()[0]})
+    (w / "out.h5").write_bytes(b"the user's own file")
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5", *(["--force"] if force else [])]
+
+
+def output_is_folder(w: Path) -> list:
+    d = joints_dir(w, {"a.npy": good_joints()[0]})
+    (w / "out.h5").mkdir()
+    (w / "out.h5" / "keep.txt").write_text("keep")
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5"]
+
+
+def output_under_a_file(w: Path) -> list:
+    d = joints_dir(w, {"a.npy": good_joints()[0]})
+    (w / "afile").write_text("x")
+    return ["preprocess", "--source", "joints", d, "-o", w / "afile" / "out.h5"]
+
+
+def report_is_user_file(w: Path) -> list:
+    d = joints_dir(w, {"a.npy": good_joints()[0]})
+    (w / "r.json").write_text("{}")
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5", "--report", w / "r.json"]
+
+
+def staging_is_user_folder(w: Path) -> list:
+    d = joints_dir(w, {"a.npy": good_joints()[0]})
+    (w / "out.h5.parts").mkdir()
+    (w / "out.h5.parts" / "mine.txt").write_text("mine")
+    return ["preprocess", "--source", "joints", d, "-o", w / "out.h5", "--resume"]
+
+
+def not_a_humanml3d_folder(w: Path) -> list:
+    (w / "hml").mkdir()
+    return ["preprocess", "--source", "humanml3d", w / "hml", "-o", w / "out.h5"]
+
+
+def existing_lsgan_shard(w: Path, pipe: Path) -> list:
+    return ["preprocess", "--source", "synthetic", "--num-clips", 40, "-o", pipe / "synth.h5"]
+
+
+def text_file(w: Path, name: str = "notes.txt") -> Path:
+    (w / name).write_text("not what lsgan expects")
+    return w / name
+
+
+def hdf5_not_shard(w: Path) -> Path:
+    with h5py.File(w / "other.h5", "w") as f:
+        f["x"] = np.arange(3)
+    return w / "other.h5"
+
+
+def run_with_user_files(w: Path, pipe: Path) -> list:
+    (w / "run").mkdir()
+    (w / "run" / "thesis.tex").write_text("mine")
+    return ["train-vae", "--data", pipe / "synth.h5", "--recipe", pipe / "tiny.yaml", "--out", w / "run"]
+
+
+def generate_args(pipe: Path, out: Path, *extra) -> list:
+    return ["generate", "--gan", pipe / "gan", "--vae", pipe / "vae", "--text", "a person walks", "--frames", 40,
+            "-o", out, *extra]
+
+
+def copy_run(src: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def corrupt_state(w: Path, pipe: Path, content: bytes) -> list:
+    run = copy_run(pipe / "vae", w / "vae")
+    (run / "last" / "state.pt").write_bytes(content)
+    return ["train-vae", "--data", pipe / "synth.h5", "--recipe", pipe / "tiny.yaml", "--out", run, "--resume",
+            "--max-steps", 6]
+
+
+def truncated_weights(w: Path, pipe: Path) -> list:
+    run = copy_run(pipe / "vae", w / "vae")
+    for sub in ("best", "last"):
+        p = run / sub / "model.safetensors"
+        p.write_bytes(p.read_bytes()[:100])
+    return generate_args(pipe, w / "out")[:4] + [run] + generate_args(pipe, w / "out")[5:]
+
+
+def evaluate_into_user_table(w: Path, pipe: Path) -> list:
+    text_file(w, "t.md")
+    return ["evaluate", "--gan", pipe / "gan", "--vae", pipe / "vae", "--data", pipe / "synth.h5", "--evaluator",
+            pipe / "vae", "-o", w / "t"]
+
+
+class _Run:
+    """Unpickling this calls os.system: a crafted file that must never run."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+
+    def __reduce__(self):
+        return (os.system, (self.command,))
+
+
+def gadget(w: Path) -> bytes:
+    return pickle.dumps({"v_template": _Run(f"touch {w / 'PWNED'}")}, protocol=2)
+
+
+def body_model_gadget(w: Path, pipe: Path) -> list:
+    (w / "evil.pkl").write_bytes(gadget(w))
+    return ["export", "--glb", next((pipe / "gen").glob("*_joints.npy")), "--body-model", w / "evil.pkl",
+            "-o", w / "body.glb"]
+
+
+def humanact12_gadget(w: Path) -> list:
+    (w / "humanact12poses.pkl").write_bytes(gadget(w))
+    return ["preprocess", "--source", "humanact12", w / "humanact12poses.pkl", "-o", w / "out.h5"]
+
+
+def state_gadget(w: Path, pipe: Path) -> list:
+    buf = io.BytesIO()
+    torch.save({"step": _Run(f"touch {w / 'PWNED'}")}, buf)
+    return corrupt_state(w, pipe, buf.getvalue())
+
+
+@dataclass(frozen=True)
+class Case:
+    id: str
+    args: Callable[[Path, Path], list]  # (row folder, tiny pipeline) -> command-line arguments
+    code: int
+    phrase: str
+
+
+CASES = [
+    # preprocess: inputs
+    Case("bvh-truncated", lambda w, p: truncated_bvh(w), 1, "no clip could be imported"),
+    Case("bvh-nan", lambda w, p: nan_bvh(w), 1, "no clip could be imported"),
+    Case("bvh-gz-not-gzip", lambda w, p: gz_not_gzip(w), 1, "no clip could be imported"),
+    Case("joint-map-malformed", lambda w, p: malformed_map(w), 1, "map.json"),
+    Case("joint-map-missing-joint", lambda w, p: map_missing_joint(w), 1, "left_wrist"),
+    Case("npy-zero-byte", lambda w, p: zero_byte_npy(w), 1, "no clip could be imported"),
+    Case("npy-pickled-object", lambda w, p: pickled_npy(w), 1, "no clip could be imported"),
+    Case("strict-one-bad-clip", lambda w, p: strict_one_bad(w), 1, "short.npy"),
+    Case("input-missing", lambda w, p: ["preprocess", "--source", "bvh", w / "nope", "-o", w / "o.h5"], 2,
+         "does not exist"),
+    Case("humanml3d-not-a-folder-of-it", lambda w, p: not_a_humanml3d_folder(w), 1, "not a processed HumanML3D"),
+    Case("resume-and-force", lambda w, p: ["preprocess", "--source", "synthetic", "-o", w / "o.h5", "--resume",
+                                           "--force"], 2, "give one of them"),
+    Case("unknown-option", lambda w, p: ["preprocess", "--sorce", "bvh"], 2, "no such option"),
+    # preprocess: outputs
+    Case("output-holds-inputs", lambda w, p: output_holds_inputs(w), 1, "holds the input"),
+    Case("output-inside-input", lambda w, p: output_inside_input(w), 1, "inside the input folder"),
+    Case("output-user-file", lambda w, p: output_is_user_file(w), 1, "pass --force"),
+    Case("output-user-file-force", lambda w, p: output_is_user_file(w, force=True), 1, "not a file lsgan wrote"),
+    Case("output-lsgan-shard-no-force", existing_lsgan_shard, 1, "pass --force"),
+    Case("output-is-folder", lambda w, p: output_is_folder(w), 1, "is a folder"),
+    Case("output-under-a-file", lambda w, p: output_under_a_file(w), 1, "is not a folder"),
+    Case("report-user-file", lambda w, p: report_is_user_file(w), 1, "not a report lsgan wrote"),
+    Case("staging-user-folder", lambda w, p: staging_is_user_folder(w), 1, "not lsgan's staging folder"),
+    # training
+    Case("train-out-user-files", run_with_user_files, 1, "not an lsgan run"),
+    Case("train-out-existing-run", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe", p / "tiny.yaml",
+                                                 "--out", p / "vae"], 1, "--resume"),
+    Case("train-out-is-file", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe", p / "tiny.yaml",
+                                            "--out", text_file(w)], 1, "is not a folder"),
+    Case("train-recipe-missing", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe", w / "no.yaml",
+                                               "--out", w / "run"], 1, "no.yaml"),
+    Case("train-data-text-file", lambda w, p: ["train-vae", "--data", text_file(w, "x.h5"), "--out", w / "run"], 1,
+         "x.h5"),
+    Case("train-data-hdf5-not-shard", lambda w, p: ["train-vae", "--data", hdf5_not_shard(w), "--out", w / "run"], 1,
+         "not an lsgan motion shard"),
+    Case("state-truncated", lambda w, p: corrupt_state(w, p, b"PK\x03\x04 truncated"), 1, "state.pt"),
+    Case("state-not-torch", lambda w, p: corrupt_state(w, p, b"hello"), 1, "state.pt"),
+    Case("weights-truncated", truncated_weights, 1, "model.safetensors"),
+    Case("state-runs-code", state_gadget, 1, "refused"),
+    # files that would run code when unpickled: refused, nothing runs (no PWNED file appears)
+    Case("body-model-runs-code", body_model_gadget, 1, "refused to unpickle"),
+    Case("humanact12-runs-code", lambda w, p: humanact12_gadget(w), 1, "refused to unpickle"),
+    # encode-latents, train-gan
+    Case("encode-output-user-file", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae", p / "vae",
+                                                  "-o", text_file(w, "c.h5")], 1, "pass --force"),
+    Case("encode-vae-not-checkpoint", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae", w,
+                                                    "-o", w / "c.h5"], 1, "no checkpoint here"),
+    Case("gan-cache-not-cache", lambda w, p: ["train-gan", "--cache", p / "synth.h5", "--out", w / "g"], 1,
+         "synth.h5"),
+    # generate
+    Case("generate-into-earlier-run", lambda w, p: generate_args(p, p / "gen"), 1, "pass --force"),
+    Case("generate-gan-is-vae", lambda w, p: ["generate", "--gan", p / "vae", "--vae", p / "vae", "--text", "x",
+                                              "-o", w / "out"], 1, "vae"),
+    Case("generate-too-few-frames", lambda w, p: generate_args(p, w / "out", "--frames", 2), 2, "at least 4 frames"),
+    Case("generate-no-prompt", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "-o", w / "out"], 2,
+         "--text"),
+    Case("generate-output-is-file", lambda w, p: generate_args(p, text_file(w)), 1, "not a folder"),
+    # export
+    Case("export-two-formats", lambda w, p: ["export", "--glb", "--bvh", p / "gen", "-o", w / "x"], 2, "one format"),
+    Case("export-user-file", lambda w, p: ["export", "--glb", next((p / "gen").glob("*_joints.npy")),
+                                           "-o", text_file(w, "walk.glb")], 1, "pass --force"),
+    Case("export-user-file-force", lambda w, p: ["export", "--bvh", next((p / "gen").glob("*_joints.npy")),
+                                                 "-o", text_file(w, "walk.bvh"), "--force"], 1,
+         "not a file lsgan wrote"),
+    Case("export-into-input-folder", lambda w, p: ["export", "--bvh", p / "gen", "-o", p / "gen"], 1,
+         "the input"),
+    Case("export-corrupt-npy", lambda w, p: ["export", "--bvh", text_file(w, "m_joints.npy"), "-o", w / "m.bvh"], 1,
+         "m_joints.npy"),
+    Case("export-body-model-missing", lambda w, p: ["export", "--glb", p / "gen", "--body-model", w / "nomodels",
+                                                    "-o", w / "body"], 1, "does not exist"),
+    # evaluate, bench, inspect
+    Case("evaluate-output-user-file", evaluate_into_user_table, 1, "pass --force"),
+    Case("bench-json-user-file", lambda w, p: ["bench", "--json", text_file(w, "b.json")], 1, "pass --force"),
+    Case("inspect-text-file", lambda w, p: ["inspect", text_file(w, "s.h5")], 1, "s.h5"),
+    Case("inspect-hdf5-not-shard", lambda w, p: ["inspect", hdf5_not_shard(w)], 1, "not an lsgan motion shard"),
+    Case("unknown-command", lambda w, p: ["fly"], 2, "no such command"),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input(case: Case, pipe: Path, tmp_path: Path) -> None:
+    w = tmp_path / "w"
+    w.mkdir()
+    args = case.args(w, pipe)
+    before = snapshot(w, pipe)
+    out = lsgan(*args, cwd=w)
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert out.returncode == case.code, out.stderr
+    assert len(errors) == 1, out.stderr
+    assert case.phrase.lower() in errors[0].lower(), out.stderr
+    assert "Traceback" not in out.stderr
+    assert not list(w.rglob("PWNED")), "a crafted pickle ran code"
+    after = snapshot(w, pipe)
+    changed = [str(p) for p, h in before.items() if after.get(p) != h]
+    assert not changed, f"pre-existing files changed or removed: {changed}"
+
+
+def test_all_failed_inputs_are_reported_by_reason(tmp_path: Path) -> None:
+    """When every input fails, the reasons are printed grouped and the JSON report is written anyway."""
+    d = joints_dir(tmp_path, {**{f"z{i}.npy": b"junk" for i in range(5)}, "short.npy": good_joints()[0][:3]})
+    out = lsgan("preprocess", "--source", "joints", d, "-o", tmp_path / "out.h5", cwd=tmp_path)
+    assert out.returncode == 1
+    assert "5 files: " in out.stderr and "(e.g. z0.npy, z1.npy, z2.npy, ...)" in out.stderr
+    assert "1 file: too short" in out.stderr
+    report = json.loads((tmp_path / "out.h5.report.json").read_text())
+    assert report["clips"] == 0 and len(report["skipped"]) == 6
+    assert [g["count"] for g in report["skipped_by_reason"]] == [5, 1]
+    assert not (tmp_path / "out.h5").exists() and not (tmp_path / "out.h5.parts").exists()
+
+
+def test_force_replaces_only_lsgan_files(pipe: Path, tmp_path: Path) -> None:
+    """generate --force into an earlier run's folder clears that run's files and keeps the user's."""
+    out = tmp_path / "gen"
+    assert lsgan(*generate_args(pipe, out, "--num", 3), cwd=tmp_path).returncode == 0
+    (out / "my_edit_joints.txt").write_text("mine")
+    edited = sorted(out.glob("*_joints.npy"))[0]
+    edited.write_bytes(edited.read_bytes() + b"\0")  # the user changed it: it is theirs now
+    res = lsgan(*generate_args(pipe, out, "--num", 1, "--force"), cwd=tmp_path)
+    assert res.returncode == 1 and "not a file lsgan wrote" in res.stderr  # same name as a new motion: refused
+    edited.unlink()
+    res = lsgan(*generate_args(pipe, out, "--num", 1, "--force"), cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert (out / "my_edit_joints.txt").read_text() == "mine"
+    assert len(list(out.glob("*_joints.npy"))) == 1
+    assert json.loads((out / "manifest.json").read_text())["motions"][0]["index"] == 0
+
+
+def test_debug_shows_the_traceback(tmp_path: Path) -> None:
+    args = ["inspect", text_file(tmp_path, "s.h5")]
+    assert "Traceback" not in lsgan(*args, cwd=tmp_path).stderr
+    assert "Traceback" in lsgan(*args, cwd=tmp_path, env={"LSGAN_DEBUG": "1"}).stderr
+    assert "Traceback" in lsgan("--debug", *args, cwd=tmp_path).stderr
+
+
+def test_bvh_gz_inputs_still_import(tmp_path: Path) -> None:
+    """A control for the rows above: the same real BVH files import when intact (also gzip-compressed)."""
+    d = bvh_folder(tmp_path)
+    for p in list(d.glob("*.bvh"))[:1]:
+        (d / (p.name + ".gz")).write_bytes(gzip.compress(p.read_bytes()))
+        p.unlink()
+    out = lsgan("preprocess", "--source", "bvh", "--joint-map", tmp_path / "map.json", d, "-o", tmp_path / "o.h5",
+                "--no-mirror", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "3 clips" in out.stderr
+
+
+@pytest.mark.parametrize("change, cause", [({"up": "z"}, "wrong `up`"), ({"scale": 1.0}, "wrong `scale`")])
+def test_implausible_imports_are_warned_by_name(tmp_path: Path, change: dict, cause: str) -> None:
+    """A joint map with the wrong up axis or units imports, but every clip is named with the likely cause."""
+    d = bvh_folder(tmp_path)
+    (tmp_path / "map.json").write_text(json.dumps({**IDENTITY_MAP, **change}))
+    out = lsgan("preprocess", "--source", "bvh", "--joint-map", tmp_path / "map.json", d, "-o", tmp_path / "o.h5",
+                cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    warned = [line for line in out.stderr.splitlines() if line.strip().startswith("warning:")]
+    assert len(warned) == 3 and all(cause in line for line in warned), out.stderr
+    assert sorted(line.split()[1].rstrip(":") for line in warned) == ["clip0", "clip1", "clip2"]
+    report = json.loads((tmp_path / "o.h5.report.json").read_text())
+    assert report["plausibility"]["flagged"] == 3
+
+
+def test_plausible_imports_are_not_warned(tmp_path: Path) -> None:
+    d = bvh_folder(tmp_path)
+    out = lsgan("preprocess", "--source", "bvh", "--joint-map", tmp_path / "map.json", d, "-o", tmp_path / "o.h5",
+                cwd=tmp_path)
+    assert out.returncode == 0 and "warning:" not in out.stderr, out.stderr
+    assert "3 clips checked, 0 flagged" in out.stderr
