@@ -664,6 +664,7 @@ Examples:
   lsgan evaluate --vae-only --vae runs/vae --data bandai.h5 --evaluator runs/evaluator -o results/vae
   lsgan evaluate --action --gan runs/act-gan --vae runs/vae --data humanact12.h5 --evaluator runs/action-clf -o act
   lsgan evaluate ... --evaluator ~/t2m-official     # the official T2M evaluator (finest.tar + GloVe + meta)
+  lsgan evaluate ... --fid-reference same           # FID as MLD computes it (default: T2M's separate pass)
 """)
 @click.option("--gan", "models", multiple=True, metavar="[NAME=]PATH",
               help="A generator checkpoint (GAN or diffusion); repeat to compare several in one table.")
@@ -682,12 +683,15 @@ Examples:
 @click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")
 @click.option("--vae-only", is_flag=True, help="The VAE reconstruction table (APE/AVE, MPJPE, FID).")
 @click.option("--action", "action_table", is_flag=True, help="The action-to-motion table (HumanAct12 style).")
+@click.option("--fid-reference", type=click.Choice(["separate", "same"]), default=None,
+              help="Text-to-motion FID's real set: a separate real pass (T2M, MDM) or, for model rows, the draw "
+                   "that gave their captions and lengths (MLD).  [default: separate]")
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="auto", show_default=True)
 @click.option("-o", "--output", required=True, type=click.Path(), help="Writes OUTPUT.md and OUTPUT.json.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT.md/.json that lsgan wrote (never other files).")
 def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_samples, min_frames, max_frames,
-             samples, steps, guidance, vae_only, action_table, seed, device, output, force) -> None:
+             samples, steps, guidance, vae_only, action_table, fid_reference, seed, device, output, force) -> None:
     """The paper's tables: Real row, model rows, 95% confidence half-widths (markdown + JSON)."""
     from lsgan.eval.evaluate import (claim_table, evaluate_action_to_motion, evaluate_reconstruction,
                                      evaluate_text_to_motion, write_table)
@@ -700,6 +704,8 @@ def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_
         named[name] = path
     if vae_only and action_table:
         raise click.UsageError("choose one of --vae-only and --action")
+    if fid_reference and (vae_only or action_table):
+        raise click.UsageError("--fid-reference applies to the text-to-motion table only")
     if not vae_only and not named:
         raise click.UsageError("give at least one --gan checkpoint (or --vae-only)")
     if not vae_only and evaluator is None:
@@ -718,7 +724,8 @@ def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_
             table = evaluate_text_to_motion(named, vae, data, evaluator, split=split, replications=replications or 20,
                                             mm_captions=mm_captions, mm_samples=mm_samples, min_frames=min_frames,
                                             max_frames=max_frames, seed=seed, device=device, steps=steps,
-                                            guidance=guidance, progress=progress)
+                                            guidance=guidance, fid_reference=fid_reference or "separate",
+                                            progress=progress)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
     md, js = write_table(table, output, force=force)
@@ -743,9 +750,11 @@ Examples:
 @click.option("--json", "json_out", type=click.Path(), help="Write the rows as JSON.")
 @click.option("--force", is_flag=True, help="Replace a --json file that lsgan wrote (never another file).")
 def bench(gans, diffusion, vae, steps, guidance, frames, repeats, devices, json_out, force) -> None:
-    """FLOPs for 2048 clips and measured time per motion (b1, b256) for each generator and the denoiser."""
+    """FLOPs per clip and per 2048 clips (generator or denoiser alone; end to end with the text encoder and VAE
+    decoder) and measured time per motion (b1, b256), for each generator and the denoiser."""
     from lsgan.eval.bench import bench_samplers, format_table, rows_as_dicts, run_bench
     from lsgan.io import atomic_file
+    from lsgan.models.text import TextEncoderUnavailable
     from lsgan.outputs import claim_file
 
     if json_out:
@@ -754,7 +763,7 @@ def bench(gans, diffusion, vae, steps, guidance, frames, repeats, devices, json_
         samplers, decoder = bench_samplers(gans=gans, diffusion=diffusion, vae=vae, steps=steps, guidance=guidance)
         rows = run_bench(samplers, vae=decoder, devices=list(devices) or None, frames=frames, repeats=repeats,
                          progress=lambda m: click.echo(m, err=True))
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, TextEncoderUnavailable) as e:
         _fail(str(e))
     click.echo(format_table(rows))
     if json_out:

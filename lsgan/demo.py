@@ -382,8 +382,9 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
         train = _scale_train(build(VAETrainConfig, section(v, "train"), "vae.train"), settings.vae_steps,
                              ("val_every", "ckpt_every", "log_every"))
         resume = _prepare_run_folder(paths["vae"], stages.inputs("train-vae"))
+        # the demo's own run folder: without a checkpoint to resume, a start's leftovers (logs) are cleared
         res = train_vae(paths["data"], paths["vae"], model=model, train=train, device=device, resume=resume,
-                        progress=progress)
+                        force=not resume, progress=progress)
         return ("resumed" if resume else "ran"), {
             "steps": res["step"], "best_val_mpjpe_m": res["best_val_mpjpe_m"],
             "note": f"validation MPJPE {res['best_val_mpjpe_m']:.3f} m" if res["best_val_mpjpe_m"] else ""}
@@ -419,7 +420,7 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
                              ("eval_every", "ckpt_every", "log_every"))
         resume = _prepare_run_folder(paths["gan"], stages.inputs("train-gan"))
         res = train_gan(paths["cache"], paths["gan"], gan=gan, train=train, device=device, resume=resume,
-                        progress=progress, expect_vae_hash=weights_hash(paths["vae"]))
+                        force=not resume, progress=progress, expect_vae_hash=weights_hash(paths["vae"]))
         fid = res["best_val_latent_fid"]
         return ("resumed" if resume else "ran"), {
             "steps": res["step"], "best_val_latent_fid": fid, "fid_history": res["fid_history"],
@@ -442,7 +443,7 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
                              settings.evaluator_steps, ("val_every", "ckpt_every", "log_every"))
         resume = _prepare_run_folder(paths["evaluator"], stages.inputs("train-evaluator"))
         res = train_evaluator(paths["data"], paths["evaluator"], config=build(EvaluatorConfig, model, "evaluator.text.model"),
-                              train_config=train, device=device, resume=resume, progress=progress)
+                              train_config=train, device=device, resume=resume, force=not resume, progress=progress)
         h = res["heldout"]
         note = (f"held-out R-precision top-3 {h['r_precision_top3']:.3f} (chance {h['chance_top3']:.3f})"
                 if "r_precision_top3" in h else "")

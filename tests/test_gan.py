@@ -13,7 +13,7 @@ from lsgan.outputs import OutputError
 import torch
 
 from lsgan.models.cache import StaleCache, read_latent_cache, write_latent_cache
-from lsgan.models.checkpoint import read_meta, save_checkpoint
+from lsgan.models.checkpoint import load_state, read_meta, save_checkpoint
 from lsgan.models.gan import (
     ARCHS,
     GANConfig,
@@ -273,6 +273,23 @@ def test_resume_continues_exactly(text_cache: Path, tmp_path: Path) -> None:
         assert torch.equal(x, y), k
     steps = [int(r["step"]) for r in csv.DictReader(open(tmp_path / "split" / "log.csv"))]
     assert steps == [0, 5, 10, 15, 20]
+
+
+def test_a_run_saved_before_the_shared_loop_resumes_exactly(text_cache: Path, tmp_path: Path) -> None:
+    """A state.pt in train_gan's own earlier layout (best_fid, one torch RNG state; the step and FID in config.json)."""
+    gan = GANConfig(arch="vanilla-wgan-gp", **SMALL)
+    train_gan(text_cache, tmp_path / "old", gan=gan, train=quick(max_steps=10), device="cpu", progress=False)
+    state = load_state(tmp_path / "old")
+    torch.save({"opt_g": state["opt_g"], "opt_d": state["opt_d"], "best_fid": state["best"],
+                "rng": state["rng"][0]["torch"]}, tmp_path / "old" / "last" / "state.pt")
+    resumed = train_gan(text_cache, tmp_path / "old", gan=gan, train=quick(), device="cpu", progress=False, resume=True)
+    straight = train_gan(text_cache, tmp_path / "new", gan=gan, train=quick(), device="cpu", progress=False)
+    assert resumed["best_val_latent_fid"] == straight["best_val_latent_fid"]
+    assert resumed["last_val_latent_fid"] == straight["last_val_latent_fid"]
+    a, _ = load_gan(tmp_path / "old", prefer="last")
+    b, _ = load_gan(tmp_path / "new", prefer="last")
+    for (k, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.equal(x, y), k
 
 
 def test_stale_cache_is_refused(text_cache: Path, tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ from lsgan.data.clip import Caption, ClipError, RawClip
 from lsgan.data.skeleton import BONE_LENGTHS, FPS, mirror_joints
 from lsgan.data.sources.synthetic import SyntheticSource
 from lsgan.data.synthetic import FAMILIES, generate, generate_clip, synthetic_clip
+from lsgan.data.tokens import tokenize
 
 FEET = [7, 8, 10, 11]
 
@@ -191,7 +192,8 @@ def test_source_items_and_clips() -> None:
     ref = synthetic_clip(3, seed=2, families=("wave-left-hand", "squat"))
     assert isinstance(clip, RawClip) and clip.name == "synth_000003" and clip.source_file == "synthetic"
     assert clip.action == "squat" and clip.mirror is False and np.array_equal(clip.joints, ref.joints)
-    assert clip.captions == [Caption(text=t) for t in ref.captions]
+    assert [c.text for c in clip.captions] == list(ref.captions)
+    assert clip.captions == [Caption(text=t, tokens=tokenize(t)) for t in ref.captions]  # tagged once, at import
     assert SyntheticSource(num_clips=5, seed=2, mirror=True).load("000001")[0].mirror is True
     with pytest.raises(ClipError):
         src.load("000005")

@@ -10,13 +10,13 @@ import pytest
 from lsgan.outputs import OutputError
 import torch
 
-from lsgan.data.features import joints_to_features
+from lsgan.data.features import joints_to_features, recover_from_ric
 from lsgan.data.shards import ClipRecord, write_shard
 from lsgan.data.skeleton import PARENTS, TARGET_OFFSETS
 from lsgan.models.checkpoint import load_state, load_weights, read_meta, save_checkpoint
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae, vae_loss
 from lsgan.train.common import TrainingDiverged
-from lsgan.train.vae import VAETrainConfig, train_vae
+from lsgan.train.vae import VAETrainConfig, mld_vae_loss, train_vae
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -130,6 +130,54 @@ def test_loss_counts_real_frames_only():
     assert loss["total"].item() == pytest.approx(loss["recon"].item() + 0.25)
 
 
+def test_torch_recover_from_ric_matches_numpy_and_is_differentiable():
+    """The MLD loss recovers joints in torch with the same function as the numpy pipeline."""
+    feats = np.stack(joints_to_features([_walk(60, 1.0, 1.0, 0.4, 0.3), _walk(60, 0.7, 0.8, 0.3, -0.2)]))
+    feats = feats.astype(np.float32)  # (2, 59, 263): turning walks
+    want = recover_from_ric(feats)
+    got = recover_from_ric(torch.from_numpy(feats))
+    assert isinstance(got, torch.Tensor) and got.shape == (2, 59, 22, 3)
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-5, rtol=0)
+    x = torch.from_numpy(feats[:1, :6].astype(np.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(recover_from_ric, (x,))
+
+
+def _smooth_l1(d: np.ndarray) -> np.ndarray:
+    return np.where(np.abs(d) < 1, 0.5 * d * d, np.abs(d) - 0.5)
+
+
+def test_mld_loss_is_smooth_l1_on_features_and_joints_plus_kl():
+    """MLD's loss written out in numpy on a tiny batch: real frames only, joints from de-normalised features."""
+    rng = np.random.default_rng(0)
+    lengths, T = [6, 3], 6
+    mask = np.arange(T)[None] < np.array(lengths)[:, None]
+    mean, std = rng.normal(0, 0.5, 263), rng.uniform(0.2, 1.0, 263)
+    x = rng.normal(size=(2, T, 263)) * mask[..., None]
+    x_hat = x + rng.normal(0, 1.5, x.shape)  # differences on both sides of SmoothL1's |d| = 1
+    x_hat[1, 3:] = 100.0  # padding: ignored
+    mu, logvar = rng.normal(size=(2, 8)), rng.normal(0, 0.5, (2, 8))
+
+    d = (x_hat - x)[mask]  # (real frames, 263)
+    assert (np.abs(d) < 1).any() and (np.abs(d) > 1).any()
+    recon = _smooth_l1(d).mean()
+    dj = (recover_from_ric(x_hat * std + mean) - recover_from_ric(x * std + mean))[mask]  # (real frames, 22, 3)
+    joints = _smooth_l1(dj).mean()
+    kl = (-0.5 * (1 + logvar - mu**2 - np.exp(logvar))).mean()
+
+    t = {k: torch.from_numpy(v) for k, v in dict(x=x, mu=mu, logvar=logvar, mean=mean, std=std).items()}
+    x_hat_t = torch.from_numpy(x_hat).requires_grad_()
+    got = mld_vae_loss(x_hat_t, t["x"], t["mu"], t["logvar"], torch.from_numpy(mask), 1e-4, t["mean"], t["std"])
+    assert got["recon"].item() == pytest.approx(recon, rel=1e-12)
+    assert got["recon_joints"].item() == pytest.approx(joints, rel=1e-12)
+    assert got["kl"].item() == pytest.approx(kl, rel=1e-12)
+    assert got["total"].item() == pytest.approx(recon + joints + 1e-4 * kl, rel=1e-12)
+    got["total"].backward()
+    assert x_hat_t.grad[0, :5, 0].abs().min() > 0  # the root's rotation velocity reaches the loss through the joints
+    assert torch.all(x_hat_t.grad[1, 3:] == 0)
+    with pytest.raises(ValueError, match="loss must be one of mse, mld"):
+        VAETrainConfig(loss="l1")
+
+
 def _log(out) -> list[dict]:
     with open(out / "log.csv", newline="") as f:
         return list(csv.DictReader(f))
@@ -173,14 +221,16 @@ def test_checkpoint_round_trip_is_exact(tmp_path):
     assert np.array_equal(meta["std"], np.float32(std))
 
 
-def test_resume_continues_at_the_same_step(shard, tmp_path):
+@pytest.mark.parametrize("loss", ["mse", "mld"])
+def test_resume_continues_at_the_same_step(shard, tmp_path, loss):
     """10 steps, then resumed to 20 == 20 uninterrupted steps: bitwise on CPU with num_workers=0.
 
     Dropout, the reparameterisation noise and the dataset's random crops all draw from the restored
     torch RNG, the sampler continues at the saved epoch and batch, and AdamW's state is restored,
     so every operation repeats exactly.
     """
-    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=10, val_every=5, ckpt_every=10, log_every=5, seed=3)
+    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=10, val_every=5, ckpt_every=10, log_every=5, seed=3,
+                         loss=loss)
     train_vae(shard, tmp_path / "a", model=TINY, train=cfg, device="cpu", progress=False)
     assert load_state(tmp_path / "a")["step"] == 10
     with pytest.raises(OutputError, match="--resume"):
@@ -196,6 +246,7 @@ def test_resume_continues_at_the_same_step(shard, tmp_path):
     assert all(torch.equal(wa[k], wb[k]) for k in wb)
     log_a, log_b = _log(tmp_path / "a"), _log(tmp_path / "b")
     assert [r["step"] for r in log_a] == [r["step"] for r in log_b] == ["5", "10", "15", "20"]
+    assert ("recon_joints" in log_a[0]) == (loss == "mld")
     for ra, rb in zip(log_a, log_b):
         assert {k: v for k, v in ra.items() if k != "sec_per_step"} == {k: v for k, v in rb.items() if k != "sec_per_step"}
     assert resumed == straight
@@ -215,3 +266,18 @@ def test_divergence_stops_and_keeps_the_last_good_checkpoint(shard, tmp_path):
     vae, meta = load_vae(tmp_path / "last")
     assert meta["step"] == 4
     assert all(torch.equal(v, good[k]) for k, v in vae.state_dict().items())
+
+
+def test_a_run_saved_before_the_shared_loop_resumes_exactly(shard, tmp_path):
+    """A state.pt in train_vae's own earlier layout (best_val_mpjpe_m, val_mpjpe_m) is continued bit for bit."""
+    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=6, val_every=3, ckpt_every=6, log_every=3, seed=5)
+    train_vae(shard, tmp_path / "old", model=TINY, train=cfg, device="cpu", progress=False)
+    state = load_state(tmp_path / "old")
+    best, val = state.pop("best"), state.pop("val")
+    torch.save({**state, "best_val_mpjpe_m": best, "val_mpjpe_m": val["mpjpe_m"]}, tmp_path / "old/last/state.pt")
+    longer = replace(cfg, max_steps=12)
+    resumed = train_vae(shard, tmp_path / "old", model=TINY, train=longer, device="cpu", resume=True, progress=False)
+    straight = train_vae(shard, tmp_path / "new", model=TINY, train=longer, device="cpu", progress=False)
+    assert resumed == straight and resumed["best_val_mpjpe_m"] <= best
+    wa, wb = load_weights(tmp_path / "old", prefer="last")[0], load_weights(tmp_path / "new", prefer="last")[0]
+    assert all(torch.equal(wa[k], wb[k]) for k in wb)

@@ -1,10 +1,39 @@
-"""Template captions for labelled mocap without free text (Bandai-Namco: content x style).
+"""Captions: T2M's rule for the frames a time-tagged caption covers, and template captions for labelled mocap.
 
-Text-to-motion training wants varied sentences, so every (content, style) pair gets several fixed
-paraphrases. They are deterministic (no sampling) so a rerun of preprocessing gives the same shards.
-Sides are written as the words "left"/"right" so the mirrored copy only needs a word swap.
+**Time spans.** A HumanML3D caption line ends in two time tags, ``#start#end`` in seconds. T2M's loaders
+(``data/dataset.py`` of EricGuo5513/text-to-motion, ``Text2MotionDataset`` and ``Text2MotionDatasetV2``; MLD
+and MDM copy them) read each tag as ``float(text)``, count a NaN tag as 0.0, take ``0.0#0.0`` as the whole
+clip and otherwise cut ``motion[int(start * 20):int(end * 20)]``. :func:`span_frames` is that rule; lsgan
+keeps every tag as the float64 of its text (shards v2), so the frames are T2M's to the frame.
+
+**Templates** (Bandai-Namco: content x style). Text-to-motion training wants varied sentences, so every
+(content, style) pair gets several fixed paraphrases. They are deterministic (no sampling) so a rerun of
+preprocessing gives the same shards. Sides are written as the words "left"/"right" so the mirrored copy
+only needs a word swap.
 """
 from __future__ import annotations
+
+import math
+
+from lsgan.data.skeleton import FPS
+
+
+def span_frames(start: float, end: float, length: int) -> tuple[int, int] | None:
+    """Frames ``(a, b)`` of a ``length``-frame clip that a caption tagged ``start``/``end`` covers; None: whole clip.
+
+    T2M's rule (see the module docstring): ``start``/``end`` must be ``float`` of the tag's text (a float32
+    rounding moves 38% of one-decimal tags by a frame). NaN counts as 0.0; ``(a, b)`` are the bounds of the
+    Python slice ``[int(start * 20):int(end * 20)]`` of the clip (``b == a`` when it is empty). A tag ``int``
+    cannot convert (infinite) gives an empty span: T2M skips such a caption.
+    """
+    s = 0.0 if math.isnan(start) else float(start)
+    e = 0.0 if math.isnan(end) else float(end)
+    if s == 0.0 and e == 0.0:
+        return None
+    if not (math.isfinite(s) and math.isfinite(e)):
+        return 0, 0
+    a, b, _ = slice(int(s * FPS), int(e * FPS)).indices(length)
+    return a, max(a, b)
 
 # content -> (present tense, present participle, main verb, trailing participle clause)
 _CONTENT: dict[str, tuple[str, str, str, str]] = {

@@ -1,10 +1,11 @@
 """A torch Dataset over shards with the HumanML3D training protocol, and a length-bucketing batch sampler.
 
-Protocol (as the T2M/MLD loaders): every caption with a time span becomes its own window of the clip;
-whole-clip captions share the full clip. Windows shorter than ``min_frames`` are dropped; longer than
-``max_frames`` are randomly cropped (``crop_long``; the original loaders drop clips of 200+ frames).
-Each draw picks one caption at random, rounds the length down to a multiple of ``unit_length`` (one
-unit shorter with probability 1/3), takes a random crop of that length and normalises it with Mean/Std.
+Protocol (as the T2M/MLD loaders): every caption with a time span becomes its own window of the clip,
+its frames by T2M's rule (:func:`lsgan.data.captions.span_frames`); whole-clip captions share the full
+clip. Windows shorter than ``min_frames`` are dropped; longer than ``max_frames`` are randomly cropped
+(``crop_long``; the original loaders drop clips of 200+ frames). Each draw picks one caption at random,
+rounds the length down to a multiple of ``unit_length`` (one unit shorter with probability 1/3), takes a
+random crop of that length and normalises it with Mean/Std.
 """
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, Sampler
 
+from lsgan.data.captions import span_frames
 from lsgan.data.shards import Shard
-from lsgan.data.skeleton import FPS
 
 
 @dataclass(frozen=True)
@@ -81,18 +82,18 @@ class MotionDataset(Dataset):
         self._pid = os.getpid()
 
     def _windows(self, s: int, i: int, length: int, caps: list, require_captions: bool) -> list[Window]:
+        """The clip's windows: whole-clip captions share one, each time span is its own (T2M's frame rule)."""
+        frames = [span_frames(c.start, c.end, length) for c in caps]
+        whole = tuple(k for k, span in enumerate(frames) if span is None)
+        spans = [(k, span) for k, span in enumerate(frames) if span is not None]
         out: list[Window] = []
-        whole = tuple(k for k, c in enumerate(caps) if not (c.start or c.end))
-        spans = [(k, c) for k, c in enumerate(caps) if c.start or c.end]
         if whole or not (spans or require_captions):
             out.append(Window(s, i, 0, length, whole))
-        for k, c in spans:
-            a, b = int(c.start * FPS), min(int(c.end * FPS), length)
-            out.append(Window(s, i, a, b, (k,)))
+        out += [Window(s, i, a, b, (k,)) for k, (a, b) in spans]
         keep = []
         for w in out:
             n = w.stop - w.start
-            if n < self.min_frames or (n > self.max_frames and not self.crop_long):
+            if n < max(self.min_frames, 1) or (n > self.max_frames and not self.crop_long):
                 continue
             keep.append(w)
         return keep

@@ -22,10 +22,12 @@ from lsgan.io import atomic_folder
 
 
 def _fmt_time(t: float) -> str:
+    """The shortest text whose ``float`` is ``t`` (NaN as 'nan'), so T2M's loaders read the tag back exactly."""
     return repr(float(t)) if t else "0.0"
 
 
 def caption_line(text: str, tokens: str, start: float, end: float) -> str:
+    """``caption#tokens#start#end``; captions without tokens are tagged here."""
     return f"{text}#{tokens or tokenize(text)}#{_fmt_time(start)}#{_fmt_time(end)}"
 
 

@@ -1,6 +1,6 @@
 """HDF5 motion shards: the one file format between ``lsgan preprocess`` and everything downstream.
 
-Layout (format ``lsgan-motion-shard``, version 1; every string is UTF-8)::
+Layout (format ``lsgan-motion-shard``, version 2; every string is UTF-8)::
 
     /features            (F, 263) float32   all clips' frames, concatenated; chunked, gzip + shuffle
     /clips/name          (N,) str           unique clip id ('M' + id for a mirrored copy)
@@ -12,14 +12,21 @@ Layout (format ``lsgan-motion-shard``, version 1; every string is UTF-8)::
     /clips/mirror_of     (N,) str           id of the clip this one mirrors, '' if none
     /captions/clip       (M,) int32         the clip each caption describes
     /captions/text       (M,) str
-    /captions/tokens     (M,) str           word/POS tokens (HumanML3D style), may be ''
-    /captions/start      (M,) float32       seconds; start = end = 0 means the whole clip
-    /captions/end        (M,) float32
+    /captions/tokens     (M,) str           word/POS tokens: the dataset's own (HumanML3D's spaCy tags), else
+                                            tagged at import by lsgan.data.tokens
+    /captions/start      (M,) float64       time tags in seconds, each ``float()`` of its text (NaN kept);
+    /captions/end        (M,) float64       lsgan.data.captions.span_frames turns them into frames (T2M's rule)
     /stats/mean, /stats/std  (263,) float32 normalisation statistics (attribute 'origin' says whose)
     /provenance          () str             JSON: inputs with sha256, options, source, versions
 
 Root attributes: format, format_version, lsgan_version, source, fps (20), feature_dim (263),
 num_joints (22), action_names (JSON list).
+
+Version 1 (still read) stored the tags as float32 and could leave tokens empty. Reading one, each tag
+becomes ``float`` of its shortest float32 decimal (the text, for any tag of up to 7 significant digits, so
+the frames are T2M's again) and empty tokens are tagged with lsgan.data.tokens, as an import now does.
+Version 1 files made from HumanML3D counted a caption with one NaN tag as whole-clip; T2M does not (see
+span_frames): preprocess again to get those spans.
 
 A file that cannot be read or written raises :class:`DataFileError` (a ValueError), one line that
 starts with the file's path.
@@ -40,10 +47,11 @@ import numpy as np
 from lsgan import __version__
 from lsgan.data.clip import Caption
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS
+from lsgan.data.tokens import tokenize
 from lsgan.io import atomic_path, publish
 
 FORMAT = "lsgan-motion-shard"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _STR = h5py.string_dtype("utf-8")
 _CHUNK_ROWS = 1024
 _SHARD = "an lsgan motion shard"
@@ -203,7 +211,7 @@ def _write_tables(f: h5py.File, cols: dict[str, list], caps: dict[str, list], st
     for key in ("text", "tokens"):
         g.create_dataset(key, data=np.array(caps[key], dtype=object), dtype=_STR, track_times=False)
     for key in ("start", "end"):
-        g.create_dataset(key, data=np.array(caps[key], dtype=np.float32), track_times=False)
+        g.create_dataset(key, data=np.array(caps[key], dtype=np.float64), track_times=False)
 
     mean, std = stats if stats is not None else acc.result()
     g = f.create_group("stats")
@@ -301,6 +309,19 @@ def _strings(ds) -> list[str]:
     return [s.decode("utf-8") if isinstance(s, bytes) else s for s in ds[()]]
 
 
+def _read_captions(f: h5py.File, clips: int, version: int) -> list[list[Caption]]:
+    """Each clip's captions; a version 1 file's float32 tags and empty tokens are brought to version 2's."""
+    texts, tokens = _strings(f["captions/text"]), _strings(f["captions/tokens"])
+    starts, ends = f["captions/start"][()], f["captions/end"][()]
+    if version < 2:
+        starts, ends = ([float(str(np.float32(t))) for t in tags] for tags in (starts, ends))
+        tokens = [tok or tokenize(text) for text, tok in zip(texts, tokens)]
+    captions: list[list[Caption]] = [[] for _ in range(clips)]
+    for i, c in enumerate(f["captions/clip"][()]):
+        captions[c].append(Caption(texts[i], tokens[i], float(starts[i]), float(ends[i])))
+    return captions
+
+
 class Shard:
     """Read access to one shard. The clip table is loaded at once; features are read on demand.
 
@@ -336,12 +357,7 @@ class Shard:
         self.mean = f["stats/mean"][()]
         self.std = f["stats/std"][()]
         self.stats_origin = f["stats"].attrs.get("origin", "")
-        cap_clip = f["captions/clip"][()]
-        texts, tokens = _strings(f["captions/text"]), _strings(f["captions/tokens"])
-        starts, ends = f["captions/start"][()], f["captions/end"][()]
-        self._captions: list[list[Caption]] = [[] for _ in self.names]
-        for i, c in enumerate(cap_clip):
-            self._captions[c].append(Caption(texts[i], tokens[i], float(starts[i]), float(ends[i])))
+        self._captions = _read_captions(f, len(self.names), int(f.attrs["format_version"]))
         self._features = f["features"]
         self._compressed = self._features.compression is not None
         if in_memory:

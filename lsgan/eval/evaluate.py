@@ -2,18 +2,22 @@
 
 Text-to-motion follows T2M's protocol: every replication draws one (motion window, caption) pair per test
 window (lengths floored to a multiple of 4, one unit shorter with probability 1/3, as MLD), generates a
-motion for each caption at the real length, embeds everything with the evaluator and computes
-R-precision (groups of 32), MM-Dist, FID against the real motions of that draw, Diversity (300 pairs) and
-MultiModality (``mm_captions`` captions x ``mm_samples`` motions, 10 pairs). The Real row scores the drawn
-real motions themselves, its FID against a second, independent draw. Each figure is reported as the mean
-over replications with its 95% half-width (1.96 std / sqrt(n)).
+motion for each caption at the real length, embeds everything with the evaluator (captions as their stored
+HumanML3D tokens for the official one) and computes R-precision (groups of 32), MM-Dist, FID, Diversity (300
+pairs) and MultiModality (``mm_captions`` captions x ``mm_samples`` motions, 10 pairs). FID's real set is a
+second, independent draw (T2M's and MDM's separate pass; ``fid_reference='same'``: for model rows the draw
+that gave their captions and lengths, as MLD). The Real row scores the drawn real motions themselves, its FID
+against the second draw. Each figure is reported as the mean over replications with its 95% half-width
+(1.96 std / sqrt(n)).
 """
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -22,24 +26,33 @@ from lsgan.eval import metrics as M
 from lsgan import outputs
 from lsgan.io import atomic_file
 
+QUALITY_COLUMNS = ("foot_skating_ratio", "penetration_m", "floating_m", "jerk_m_s3")
+"""What animators read (lsgan.eval.quality): GMD's foot-skating ratio, ground penetration, floating, mean jerk."""
 T2M_COLUMNS = ("r_precision_top1", "r_precision_top2", "r_precision_top3", "fid", "mm_dist", "diversity",
-               "multimodality")
+               "multimodality", *QUALITY_COLUMNS)
 VAE_COLUMNS = ("ape_root", "ape_traj", "ape_mean_pose", "ape_mean_joints", "ave_root", "ave_traj",
                "ave_mean_pose", "ave_mean_joints", "mpjpe", "fid")
 ACTION_COLUMNS = ("fid", "accuracy", "diversity", "multimodality")
+FID_REFERENCES = {
+    "separate": "each row against a separate pass over the real test data (T2M, MDM)",
+    "same": "model rows against the real draw that gave their captions and lengths (MLD); "
+            "Real against a separate pass",
+}
 LABELS = {"r_precision_top1": "R-P top1 ↑", "r_precision_top2": "R-P top2 ↑", "r_precision_top3": "R-P top3 ↑",
           "fid": "FID ↓", "mm_dist": "MM-Dist ↓", "diversity": "Diversity →", "multimodality": "MModality ↑",
-          "accuracy": "Accuracy ↑", "mpjpe": "MPJPE (m) ↓"}
+          "accuracy": "Accuracy ↑", "mpjpe": "MPJPE (m) ↓", "foot_skating_ratio": "Skating ↓",
+          "penetration_m": "Penetration (m) ↓", "floating_m": "Floating (m) ↓", "jerk_m_s3": "Jerk (m/s³) →"}
 
 
 @dataclass
 class Table:
-    """Rows of per-replication values; ``summary`` gives (mean, 95% half-width) per cell."""
+    """Rows of per-replication values; ``summary`` gives (mean, 95% half-width) per cell; ``notes`` follow the table."""
 
     kind: str
     columns: tuple[str, ...]
     rows: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     def add(self, row: str, column: str, value: float) -> None:
         self.rows.setdefault(row, {}).setdefault(column, []).append(float(value))
@@ -48,7 +61,7 @@ class Table:
         return {r: {c: M.mean_ci(np.asarray(v)) for c, v in cols.items()} for r, cols in self.rows.items()}
 
     def to_json(self) -> dict:
-        return {"kind": self.kind, "info": self.info,
+        return {"kind": self.kind, "info": self.info, "notes": self.notes,
                 "rows": {r: {c: {"mean": m, "ci95": h, "values": self.rows[r][c]} for c, (m, h) in cols.items()}
                          for r, cols in self.summary().items()}}
 
@@ -64,7 +77,7 @@ class Table:
                 m, h = cols[c]
                 cells.append(f"{m:.3f}" + (f" ±{h:.3f}" if len(self.rows[r][c]) > 1 else ""))
             lines.append(f"| {r} | " + " | ".join(cells) + " |")
-        return "\n".join(lines)
+        return "\n".join(lines + ([""] + self.notes if self.notes else []))
 
 
 def claim_table(out: str | Path, *, force: bool = False) -> tuple[Path, Path]:
@@ -84,15 +97,70 @@ def write_table(table: Table, out: str | Path, *, force: bool = False) -> tuple[
     return md, js
 
 
-def _draw(dataset, seed: int) -> tuple[list[np.ndarray], list[str]]:
+class Draw(NamedTuple):
+    """One real draw: per test window a crop (de-normalised features), its caption and the caption's tokens."""
+
+    motions: list[np.ndarray]
+    captions: list[str]
+    tokens: list[str]
+
+
+def _draw(dataset, seed: int) -> Draw:
     """One real draw: a window crop and a caption per test window (torch RNG seeded, as the loaders)."""
     torch.manual_seed(seed)
-    motions, captions = [], []
+    motions, captions, tokens = [], [], []
     for i in range(len(dataset)):
         item = dataset[i]
         motions.append(item["motion"].numpy())
         captions.append(item["caption"])
-    return motions, captions
+        tokens.append(item["tokens"])
+    return Draw(motions, captions, tokens)
+
+
+@dataclass
+class _Row:
+    """One row's motions of a replication (de-normalised features) and their evaluator embeddings."""
+
+    motions: list[np.ndarray]
+    emb: np.ndarray
+
+
+def _t2m_cells(table: Table, name: str, row: _Row, text_emb: np.ndarray, reference: np.ndarray, seed: int,
+               rng: np.random.Generator) -> None:
+    """T2M's figures of one row in one replication: R-precision, MM-Dist, FID against the real embeddings
+    ``reference``, Diversity."""
+    top = M.r_precision(text_emb, row.emb, top_k=3, rng=np.random.default_rng(seed))
+    for k in range(3):
+        table.add(name, f"r_precision_top{k + 1}", top[k])
+    table.add(name, "mm_dist", M.matching_score(text_emb, row.emb, rng=np.random.default_rng(seed)))
+    table.add(name, "fid", M.fid(reference, row.emb))
+    table.add(name, "diversity", M.diversity(row.emb, pairs=min(300, len(row.emb) // 2), rng=rng))
+
+
+def _quality_cells(table: Table, name: str, motions: list[np.ndarray]) -> None:
+    """The motion-quality figures of one row in one replication, on the joints recovered from its features."""
+    from lsgan.data.features import recover_from_ric
+    from lsgan.eval.quality import quality_metrics
+
+    q = quality_metrics([recover_from_ric(m) for m in motions])
+    for column in QUALITY_COLUMNS:
+        table.add(name, column, q[column])
+
+
+def _model_row(table: Table, name: str, generate: Callable, draw: Draw, ev, rng: np.random.Generator, *, seed: int,
+               mm_captions: int, mm_samples: int) -> _Row:
+    """A model's motions for the draw's captions at its lengths (``generate(requests, num=, seed=)``); its
+    MultiModality cell on the way."""
+    from lsgan.generate import Request
+
+    requests = [Request(text=c, frames=len(m)) for c, m in zip(draw.captions, draw.motions)]
+    motions = [m.features for m in generate(requests, num=1, seed=seed).motions]
+    if mm_captions and mm_samples:
+        pick = rng.choice(len(requests), size=min(mm_captions, len(requests)), replace=False)
+        mm = generate([requests[i] for i in pick], num=mm_samples, seed=seed + 7919)
+        emb = ev.embed_motions([m.features for m in mm.motions]).reshape(len(pick), mm_samples, -1)
+        table.add(name, "multimodality", M.multimodality(emb, pairs=min(10, mm_samples), rng=rng))
+    return _Row(motions, ev.embed_motions(motions))
 
 
 def evaluate_text_to_motion(
@@ -111,14 +179,23 @@ def evaluate_text_to_motion(
     device: str = "auto",
     steps: int | None = None,
     guidance: float | None = None,
+    fid_reference: str = "separate",
     progress: Callable[[str], None] | None = None,
 ) -> Table:
-    """The text-to-motion table: a Real row and one row per model (GAN or diffusion checkpoint)."""
+    """The text-to-motion table: a Real row and one row per model (GAN or diffusion checkpoint).
+
+    The evaluator reads each caption's stored tokens (the official one's word vectoriser; ours reads the
+    sentence). ``fid_reference`` (see :data:`FID_REFERENCES`): 'separate' compares every row with a second,
+    independent real draw (T2M, MDM); 'same' compares model rows with the draw that gave their captions and
+    lengths (MLD), the Real row still with the second draw.
+    """
     from lsgan.data.dataset import MotionDataset
-    from lsgan.generate import Request, generate
+    from lsgan.generate import generate
     from lsgan.models.evaluator import load_evaluator
     from lsgan.train.common import pick_device
 
+    if fid_reference not in FID_REFERENCES:
+        raise ValueError(f"fid_reference must be one of {', '.join(FID_REFERENCES)}, not {fid_reference!r}")
     dev = pick_device(device)
     ev = load_evaluator(evaluator, device=dev)
     dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False,
@@ -128,37 +205,28 @@ def evaluate_text_to_motion(
     table = Table("text-to-motion", T2M_COLUMNS, info={
         "data": str(data), "split": split, "windows": len(dataset), "evaluator": ev.id, "vae": str(vae),
         "replications": replications, "mm_captions": mm_captions, "mm_samples": mm_samples, "seed": seed,
-        "models": {k: str(v) for k, v in models.items()}})
+        "fid_reference": fid_reference, "models": {k: str(v) for k, v in models.items()}},
+        notes=[f"FID reference: {FID_REFERENCES[fid_reference]}."])
     gen_kwargs = {k: v for k, v in (("steps", steps), ("guidance", guidance)) if v is not None}
     for name in ("Real", *models):  # row order: Real first (MultiModality fills the model rows earlier)
         table.rows[name] = {}
     for r in range(replications):
         rng = np.random.default_rng(seed + r)
-        real, captions = _draw(dataset, seed + 1000 * r)
-        second, _ = _draw(dataset, seed + 1000 * r + 1)
-        text_emb = ev.embed_texts(captions)
-        real_emb = ev.embed_motions(real)
-        rows = {"Real": real_emb}
+        draw = _draw(dataset, seed + 1000 * r)
+        second = _draw(dataset, seed + 1000 * r + 1)
+        text_emb = ev.embed_texts(draw.captions, tokens=draw.tokens)
+        rows = {"Real": _Row(draw.motions, ev.embed_motions(draw.motions))}
         for name, path in models.items():
             if progress:
                 progress(f"replication {r + 1}/{replications}: {name}")
-            requests = [Request(text=c, frames=len(m)) for c, m in zip(captions, real)]
-            out = generate(path, vae, requests, num=1, seed=seed + r, device=str(dev), **gen_kwargs)
-            rows[name] = ev.embed_motions([m.features for m in out.motions])
-            if mm_captions and mm_samples:
-                pick = rng.choice(len(captions), size=min(mm_captions, len(captions)), replace=False)
-                mm_req = [requests[i] for i in pick]
-                mm = generate(path, vae, mm_req, num=mm_samples, seed=seed + r + 7919, device=str(dev), **gen_kwargs)
-                emb = ev.embed_motions([m.features for m in mm.motions]).reshape(len(pick), mm_samples, -1)
-                table.add(name, "multimodality", M.multimodality(emb, pairs=min(10, mm_samples), rng=rng))
-        second_emb = ev.embed_motions(second)
-        for name, emb in rows.items():
-            top = M.r_precision(text_emb, emb, top_k=3, rng=np.random.default_rng(seed + r))
-            for k in range(3):
-                table.add(name, f"r_precision_top{k + 1}", top[k])
-            table.add(name, "mm_dist", M.matching_score(text_emb, emb, rng=np.random.default_rng(seed + r)))
-            table.add(name, "fid", M.fid(second_emb if name == "Real" else real_emb, emb))
-            table.add(name, "diversity", M.diversity(emb, pairs=min(300, len(emb) // 2), rng=rng))
+            model = partial(generate, path, vae, device=str(dev), **gen_kwargs)
+            rows[name] = _model_row(table, name, model, draw, ev, rng, seed=seed + r, mm_captions=mm_captions,
+                                    mm_samples=mm_samples)
+        second_emb = ev.embed_motions(second.motions)
+        for name, row in rows.items():
+            reference = second_emb if name == "Real" or fid_reference == "separate" else rows["Real"].emb
+            _t2m_cells(table, name, row, text_emb, reference, seed + r, rng)
+            _quality_cells(table, name, row.motions)
     return table
 
 
@@ -198,7 +266,7 @@ def evaluate_reconstruction(
                                                           "windows": len(dataset), "replications": replications,
                                                           "ape_ave_units": "MLD (metres x 0.64)"})
     for r in range(replications):
-        real, _ = _draw(dataset, seed + 1000 * r)
+        real = _draw(dataset, seed + 1000 * r).motions
         recon: list[np.ndarray] = [None] * len(real)  # type: ignore[list-item]
         order = sorted(range(len(real)), key=lambda i: len(real[i]))
         with torch.no_grad():
@@ -263,7 +331,7 @@ def evaluate_action_to_motion(
     gen_kwargs = {k: v for k, v in (("steps", steps), ("guidance", guidance)) if v is not None}
     for r in range(replications):
         rng = np.random.default_rng(seed + r)
-        real, _ = _draw(dataset, seed + 1000 * r)
+        real = _draw(dataset, seed + 1000 * r).motions
         real_joints = [recover_from_ric(m) for m in real]
         real_feat = clf.features(real_joints)
         pick = rng.choice(len(real), size=samples, replace=samples > len(real))

@@ -22,8 +22,9 @@ EricGuo5513/text-to-motion, so the state dicts of its ``finest.tar`` load unchan
 - ``TextEncoderBiGRUCo(300, 15, 512, 512)``: GloVe word vector + ``pos_emb``(one-hot of 15 POS
   categories) -> ``input_emb`` -> bidirectional GRU -> ``output_net``.
 
-Its input pipeline is reproduced as well: captions as HumanML3D ``word/POS`` tokens (tagged with
-:mod:`lsgan.data.tokens` when a caption comes without them), at most 20 tokens between ``sos/OTHER`` and
+Its input pipeline is reproduced as well: captions as HumanML3D ``word/POS`` tokens (``lsgan evaluate``
+passes the shard's: HumanML3D's own spaCy tokens, or those tagged at import; a caller that passes none gets
+:mod:`lsgan.data.tokens`' tags), split on spaces as T2M's loader does, at most 20 between ``sos/OTHER`` and
 ``eos/OTHER``, words looked up in ``glove/our_vab_*`` (unknown words -> ``unk`` with POS OTHER; words of
 the VIP lists get their VIP category); motions de-normalised by the caller and re-normalised here with
 the evaluator's own ``t2m/Comp_v6_KLD01/meta/{mean,std}.npy``, padded with zeros to 196 frames (as the
@@ -434,8 +435,8 @@ class T2MEvaluator(TextMotionEvaluator):
     @torch.no_grad()
     def embed_texts(self, captions: Sequence[str], *, tokens: Sequence[str] | None = None,
                     batch_size: int = 256) -> np.ndarray:
-        """Captions -> (N, 512). ``tokens`` (optional, one ``'word/POS ...'`` string per caption, e.g. the
-        shard's spaCy tokens) are used where given; otherwise the caption is tagged by lsgan.data.tokens."""
+        """Captions -> (N, 512) from their tokens: ``tokens`` (one ``'word/POS ...'`` string per caption, as the
+        shard stores them) where given, else the caption tagged by lsgan.data.tokens. The text is not read."""
         captions = _check_captions(captions, tokens)
         n = len(captions)
         words, poses, lens = [], [], []

@@ -2,9 +2,10 @@
 
 Four variants (method.md's table), picked by ``GANConfig.arch``:
 
-    vanilla-gan       3-FC generator, 4-FC discriminator, BCE loss (sigmoid folded into BCE-with-logits)
+    vanilla-gan       3-FC generator, 4-FC discriminator, LeakyReLU after every hidden layer, BCE loss (sigmoid
+                      folded into BCE-with-logits); the LS-GAN authors' widths (docs/fidelity.md)
     vanilla-wgan-gp   same networks, the discriminator is a critic (no sigmoid), Wasserstein loss + gradient penalty
-    deep-gan          the same networks with residual blocks after their first FC layer, BCE loss
+    deep-gan          FC networks with residual blocks after their first FC layer, BCE loss
     deep-wgan-gp      deep networks, Wasserstein loss + gradient penalty
 
 Latents live in STANDARDISED space: the cache's per-dimension mean/std of the train latents are removed before
@@ -40,15 +41,17 @@ class GANConfig:
     cond_dim: int = 384  # the text encoder's width
     num_actions: int = 0
     action_emb_dim: int = 10
-    hidden_dim: int = 512
+    hidden_dim: int = 512  # H: deep networks are H wide; vanilla ones taper 2H -> H (G), 2H -> H -> H/2 (D)
     num_res_blocks: int = 2  # deep variants only
-    leaky_slope: float = 0.2
+    leaky_slope: float = 0.2  # the LS-GAN authors' nn.LeakyReLU() is torch's default, 0.01
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
             raise ValueError(f"unknown GAN arch {self.arch!r}; choose one of {ARCHS}")
         if self.cond not in CONDS:
             raise ValueError(f"unknown condition kind {self.cond!r}; choose one of {CONDS}")
+        if self.hidden_dim < 2:
+            raise ValueError(f"hidden_dim must be at least 2, got {self.hidden_dim}")
 
     @property
     def deep(self) -> bool:
@@ -62,6 +65,17 @@ class GANConfig:
     def blocks(self) -> int:
         """Residual blocks per network: num_res_blocks for the deep variants, none for the vanilla ones."""
         return self.num_res_blocks if self.deep else 0
+
+    def widths(self, net: str) -> tuple[int, ...]:
+        """Hidden widths of the generator ("G": fc1, fc2) or discriminator ("D": fc1, fc2, fc3).
+
+        Vanilla: the LS-GAN authors' taper (gan_architecture.py: G 1024, 512; D 1024, 512, 256 for H = 512);
+        deep: H throughout (our residual design, not the authors').
+        """
+        h = self.hidden_dim
+        if self.deep:
+            return (h, h) if net == "G" else (h, h, h)
+        return (2 * h, h) if net == "G" else (2 * h, h, h // 2)
 
 
 class ResBlock(nn.Module):
@@ -104,63 +118,67 @@ class Condition(nn.Module):
 class Generator(nn.Module):
     """z' = G(noise, c), unbounded (no tanh: VAE latents are Gaussians, not values in [-1, 1]).
 
-    Layout, reading method.md's "3 fully connected layers, LeakyReLU before the last" literally::
+    Layout (H = hidden_dim)::
 
-        vanilla: [noise, c] -> fc1 -> fc2 -> LeakyReLU -> fc3 -> z'
-        deep:    [noise, c] -> fc1 -> ResBlock x num_res_blocks -> fc2 -> LeakyReLU -> fc3 -> z'
+        vanilla: [noise, c] -> fc1 (2H) -> LeakyReLU -> fc2 (H) -> LeakyReLU -> fc3 -> z'
+        deep:    [noise, c] -> fc1 (H) -> ResBlock x num_res_blocks -> fc2 (H) -> LeakyReLU -> fc3 -> z'
 
-    In the vanilla generator fc1 and fc2 compose to one (rank <= hidden_dim) linear map, so it is a one-hidden-layer
-    MLP with the paper's layer count; the deep one's residual blocks (one Linear each) sit between its first two FC
-    layers. With a 768-d text condition and hidden 512 that is 0.84 M / 1.36 M multiply-adds per sample (vanilla /
-    deep), close to the paper's 1.581 / 2.665 GFLOPs for 2048 clips (0.77 M / 1.30 M per clip).
+    The vanilla one is the paper's "3 fully connected layers" with leaky ReLU in all layers preceding the final
+    one, at the LS-GAN authors' widths (1024, 512 for H = 512). The deep one's first FC layer feeds pre-activation
+    residual blocks directly (``act1`` is the identity there), as its checkpoints were trained.
+    Cost at a 768-d condition: 1.544 M multiply-adds per clip (vanilla), 1.362 M (deep); FLOPs are twice that
+    (`lsgan bench`: 3.09 M, 2.72 M). The vanilla count times 1024 is the paper's "1.581 G" (THOP MACs,
+    docs/fidelity.md).
     """
 
     def __init__(self, cfg: GANConfig) -> None:
         super().__init__()
-        h = cfg.hidden_dim
+        w1, w2 = cfg.widths("G")
         self.cond = Condition(cfg)
-        self.fc1 = nn.Linear(cfg.noise_dim + self.cond.dim, h)
-        self.blocks = nn.ModuleList(ResBlock(h, cfg.leaky_slope) for _ in range(cfg.blocks))
-        self.fc2 = nn.Linear(h, h)
+        self.fc1 = nn.Linear(cfg.noise_dim + self.cond.dim, w1)
+        self.act1 = nn.Identity() if cfg.deep else nn.LeakyReLU(cfg.leaky_slope)
+        self.blocks = nn.ModuleList(ResBlock(w1, cfg.leaky_slope) for _ in range(cfg.blocks))
+        self.fc2 = nn.Linear(w1, w2)
         self.act = nn.LeakyReLU(cfg.leaky_slope)
-        self.fc3 = nn.Linear(h, cfg.latent_dim)
+        self.fc3 = nn.Linear(w2, cfg.latent_dim)
 
     def forward(self, noise: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        x = self.fc1(torch.cat([noise, self.cond(c)], dim=-1))  # (B, H)
+        x = self.act1(self.fc1(torch.cat([noise, self.cond(c)], dim=-1)))  # (B, W1)
         for block in self.blocks:
-            x = block(x)  # (B, H)
-        return self.fc3(self.act(self.fc2(x)))  # (B, Z)
+            x = block(x)  # (B, W1)
+        return self.fc3(self.act(self.fc2(x)))  # (B, W2) -> (B, Z)
 
 
 class Discriminator(nn.Module):
     """D(z, c) -> one score per sample (B,): a logit for the BCE GANs, an unbounded critic value for WGAN-GP.
 
-    Layout ("4 fully connected layers, LeakyReLU"; no batch norm, which breaks the gradient penalty)::
+    Layout (H = hidden_dim; no batch norm, which breaks the gradient penalty)::
 
-        vanilla: [z, c] -> fc1 -> LeakyReLU -> fc2 -> LeakyReLU -> fc3 -> LeakyReLU -> fc4 -> score
-        deep:    [z, c] -> fc1 -> ResBlock x num_res_blocks -> LeakyReLU -> fc2 -> ... -> fc4 -> score
+        vanilla: [z, c] -> fc1 (2H) -> LeakyReLU -> fc2 (H) -> LeakyReLU -> fc3 (H/2) -> LeakyReLU -> fc4 -> score
+        deep:    [z, c] -> fc1 (H) -> ResBlock x num_res_blocks -> LeakyReLU -> fc2 (H) -> ... -> fc4 -> score
 
-    The BCE variants' sigmoid is applied inside the loss (BCE-with-logits: the same function, numerically stable).
-    The condition has its own embedding here (for actions), separate from the generator's.
+    The vanilla one is the paper's "4 fully connected layers" at the LS-GAN authors' widths (1024, 512, 256 for
+    H = 512). The BCE variants' sigmoid is applied inside the loss (BCE-with-logits: the same function, numerically
+    stable). The condition has its own embedding here (for actions), separate from the generator's.
     """
 
     def __init__(self, cfg: GANConfig) -> None:
         super().__init__()
-        h = cfg.hidden_dim
+        w1, w2, w3 = cfg.widths("D")
         self.cond = Condition(cfg)
-        self.fc1 = nn.Linear(cfg.latent_dim + self.cond.dim, h)
-        self.blocks = nn.ModuleList(ResBlock(h, cfg.leaky_slope) for _ in range(cfg.blocks))
-        self.fc2 = nn.Linear(h, h)
-        self.fc3 = nn.Linear(h, h)
-        self.fc4 = nn.Linear(h, 1)
+        self.fc1 = nn.Linear(cfg.latent_dim + self.cond.dim, w1)
+        self.blocks = nn.ModuleList(ResBlock(w1, cfg.leaky_slope) for _ in range(cfg.blocks))
+        self.fc2 = nn.Linear(w1, w2)
+        self.fc3 = nn.Linear(w2, w3)
+        self.fc4 = nn.Linear(w3, 1)
         self.act = nn.LeakyReLU(cfg.leaky_slope)
 
     def forward(self, z: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        x = self.fc1(torch.cat([z, self.cond(c)], dim=-1))  # (B, H)
+        x = self.fc1(torch.cat([z, self.cond(c)], dim=-1))  # (B, W1)
         for block in self.blocks:
-            x = block(x)  # (B, H)
-        x = self.act(self.fc2(self.act(x)))  # (B, H)
-        x = self.act(self.fc3(x))  # (B, H)
+            x = block(x)  # (B, W1)
+        x = self.act(self.fc2(self.act(x)))  # (B, W2)
+        x = self.act(self.fc3(x))  # (B, W3)
         return self.fc4(x).squeeze(-1)  # (B,)
 
 
@@ -271,5 +289,11 @@ def load_gan(
     known = {f.name for f in fields(GANConfig)}
     cfg = GANConfig(**{k: v for k, v in meta["config"]["gan"].items() if k in known})
     model = LatentGAN(cfg)
-    model.load_state_dict(weights, strict=True)
+    try:
+        model.load_state_dict(weights, strict=True)
+    except RuntimeError as e:
+        if cfg.deep or "size mismatch" not in str(e):
+            raise
+        raise ValueError(f"{path}: a {cfg.arch} checkpoint from before the vanilla networks followed the paper "
+                         "(LeakyReLU after every hidden layer, widths 2H/H and 2H/H/H/2); train it again") from e
     return model.to(device).eval(), meta

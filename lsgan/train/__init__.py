@@ -1,1 +1,2 @@
-"""Training loops (VAE, GAN, diffusion) and what they share: devices, distributed runs, logs."""
+"""Training: one loop (:mod:`lsgan.train.loop`) and what each model contributes to it (vae, gan, diffusion,
+evaluator)."""

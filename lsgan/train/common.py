@@ -1,4 +1,5 @@
-"""What every training loop shares: device choice, seeding, torchrun/DDP set-up, CSV/TensorBoard logs."""
+"""The pieces under the training loop (:mod:`lsgan.train.loop`): device choice, seeding, torchrun/DDP set-up,
+CSV/TensorBoard logs, the NaN check and the run folder's claim."""
 from __future__ import annotations
 
 import csv
@@ -7,7 +8,7 @@ import math
 import os
 import random
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -191,9 +192,10 @@ class RunLog:
             self._tb.close()
 
 
-RUN_FILES = ("last", "best", "log.csv", "train.log", "tb", "heldout.json", "demo-inputs.json", outputs.REGISTRY)
-"""What a training run writes in its folder (``demo-inputs.json``: what ``lsgan demo`` started it on);
-``force`` removes these and nothing else."""
+RUN_STATE = ("last", "best", "log.csv", "train.log", "tb", "heldout.json")
+"""What a training run writes in its folder; ``force`` removes these and nothing else."""
+RUN_FILES = (*RUN_STATE, "demo-inputs.json", outputs.REGISTRY)
+"""What a run folder may hold besides (``demo-inputs.json``: what ``lsgan demo`` started the run on)."""
 
 
 def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
@@ -209,18 +211,24 @@ def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
         raise outputs.OutputError(f"{out}: exists and is not a folder; give a folder for the run")
     names = sorted(p.name for p in out.iterdir())
     others = [n for n in names if n not in RUN_FILES]
-    started = [n for n in names if n not in ("demo-inputs.json", outputs.REGISTRY)]
-    if resume or not started:
+    if resume:
         return
     if others:
         raise outputs.OutputError(f"{out}: holds files that are not an lsgan run's ({', '.join(others[:5])}"
                                   f"{' ...' if len(others) > 5 else ''}); choose a new or empty folder")
+    if not any(n in RUN_STATE for n in names):
+        return
     if not force:
         raise outputs.OutputError(f"{out}: already holds a run; pass --resume to continue it or --force to start "
                                   "over (only the run's own files are removed)")
-    for name in RUN_FILES:
+    for name in RUN_STATE:
         p = out / name
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p)
         elif p.exists() or p.is_symlink():
             p.unlink()
+
+
+def shard_paths(data: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:
+    """One shard or several, as a list of paths."""
+    return [os.fspath(data)] if isinstance(data, (str, os.PathLike)) else [os.fspath(p) for p in data]

@@ -25,32 +25,29 @@ held-out pairs ('test', else 'val'): R-precision top-1/2/3 in groups of 32 and M
 :class:`lsgan.models.evaluator.ActionRecognitionGRU` with cross-entropy on joints recovered from the
 features (``recover_from_ric``), random crops of whole clips, and reports held-out accuracy.
 
-Both write ``out/last`` and ``out/best`` with :mod:`lsgan.models.checkpoint`, ``out/log.csv``, resume
-exactly with ``resume=True`` (weights, optimiser, step, RNG, sampler position) and stop on a NaN loss
-keeping the last good checkpoint. They run in one process (the models are small).
+Both train through :func:`lsgan.train.loop.fit`: ``out/last`` and ``out/best``, ``out/log.csv``, exact resume
+with ``resume=True`` (weights, optimiser, step, RNG, sampler position) and a stop on a NaN loss keeping the last
+good checkpoint. They run in one process (the models are small).
 """
 from __future__ import annotations
 
 import json
 import math
 import os
-import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
-from tqdm import tqdm
 
 from lsgan.data.dataset import LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
 from lsgan.eval.metrics import retrieval_metrics
-from lsgan.models.checkpoint import load_state, load_weights, save_checkpoint
 from lsgan.models.evaluator import (
+    ActionClassifier,
     ActionClassifierConfig,
     ActionRecognitionGRU,
     EvaluatorConfig,
@@ -61,16 +58,8 @@ from lsgan.models.evaluator import (
     load_learned_evaluator,
     prepare_joints,
 )
-from lsgan.train.common import (
-    claim_run,
-    RunLog,
-    TrainingDiverged,
-    check_finite,
-    closing_progress_bars,
-    pick_device,
-    seed_everything,
-)
-from lsgan.train.vae import _rng_state, _set_rng_state, _train_batches, _truncate_log
+from lsgan.train.common import seed_everything, shard_paths
+from lsgan.train.loop import EpochBatches, Env, Progress, Trainer, WindowTrainConfig, fit, launch
 
 __all__ = [
     "ActionTrainConfig",
@@ -83,46 +72,32 @@ __all__ = [
 
 
 @dataclass
-class EvaluatorTrainConfig:
-    """T2M's text_mot_match settings by default (batch 32, lr 1e-4, margin 10, clip 0.5, unit length 4)."""
+class EvaluatorTrainConfig(WindowTrainConfig):
+    """T2M's text_mot_match settings by default (batch 32, lr 1e-4, margin 10, clip 0.5, unit length 4), with the
+    schedule, window lengths, workers and seed of :class:`lsgan.train.loop.WindowTrainConfig`."""
 
     lr: float = 1e-4
     batch_size: int = 32
     margin: float = 10.0  # T2M --negative_margin
-    max_steps: int = 2000
-    val_every: int = 500
-    ckpt_every: int = 500
-    log_every: int = 50
-    min_frames: int = 40
-    max_frames: int = 196
     grad_clip: float = 0.5  # max grad norm, per encoder (text head; motion side); 0 = none
-    num_workers: int = 0
-    seed: int = 0
     group_size: int = 32  # R-precision groups
     eval_repeats: int = 10  # held-out R-precision: mean over this many shuffles
 
 
 @dataclass
-class ActionTrainConfig:
-    lr: float = 1e-3
-    batch_size: int = 64
-    max_steps: int = 2000
+class ActionTrainConfig(WindowTrainConfig):
+    """The action GRU's settings; shorter clips and a denser schedule than WindowTrainConfig's defaults."""
+
     val_every: int = 250
     ckpt_every: int = 250
-    log_every: int = 50
     min_frames: int = 16
-    max_frames: int = 196
+    lr: float = 1e-3
+    batch_size: int = 64
     grad_clip: float = 1.0
-    num_workers: int = 0
-    seed: int = 0
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Held-out pairs and the retrieval report
-
-def _paths(data) -> list[str]:
-    return [os.fspath(data)] if isinstance(data, (str, os.PathLike)) else [os.fspath(p) for p in data]
-
 
 def _split_with_data(paths: list[str], order: Sequence[str]) -> str | None:
     for split in order:
@@ -137,7 +112,7 @@ def heldout_pairs(data, split: str, *, min_frames: int = 40, max_frames: int = 1
                   ) -> tuple[list[np.ndarray], list[str], list[str]]:
     """Fixed (features, caption, tokens) pairs of a split: every captioned window once (longer ones centre-cropped
     to ``max_frames``), one of its captions picked with ``seed``. Features are de-normalised (as stored)."""
-    ds = MotionDataset(_paths(data), split, min_frames=min_frames, max_frames=max_frames, normalize=False,
+    ds = MotionDataset(shard_paths(data), split, min_frames=min_frames, max_frames=max_frames, normalize=False,
                        require_captions=True)
     rng = np.random.default_rng(seed)
     feats, caps, toks = [], [], []
@@ -181,186 +156,101 @@ def retrieval_report(text_emb: np.ndarray, motion_emb: np.ndarray, *, group_size
             "chance_top1": 1 / g, "chance_top2": 2 / g, "chance_top3": 3 / g}
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# The loop both trainers share
-
-def _say_to(out: Path, enabled: bool = True) -> Callable[[str], None]:
-    def say(msg: str) -> None:
-        if not enabled:
-            return
-        tqdm.write(msg, file=sys.stderr)
-        out.mkdir(parents=True, exist_ok=True)
-        with open(out / "train.log", "a") as f:
-            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}\n")
-    return say
-
-
-def _start(out: Path, resume: bool, say) -> dict | None:
-    if resume and (out / "last").exists():
-        state = load_state(out / "last")
-        if state is None:
-            raise FileNotFoundError(f"{out / 'last'}: no state.pt to resume from")
-        return state
-    if resume:
-        say(f"{out}: nothing to resume; starting a new run")
-    elif (out / "last").exists():
-        raise FileExistsError(f"{out} already holds a run; pass resume=True to continue it or choose another folder")
-    return None
-
-
-@closing_progress_bars
-def _loop(*, out: Path, kind: str, desc: str, net: torch.nn.Module, opt: torch.optim.Optimizer, ds: Dataset,
-          sampler: LengthBucketSampler, cfg, dev: torch.device, state: dict | None, config: dict,
-          step_fn: Callable[[dict], dict[str, float]], validate: Callable[[], dict[str, float]], best_key: str,
-          higher_is_better: bool, extra: Callable[[], dict], progress: bool, say) -> dict:
-    """Train ``net`` for ``cfg.max_steps`` steps of ``step_fn``; validate, log and checkpoint on schedule."""
-    step, epoch, done = 0, 0, 0
-    sign = -1.0 if higher_is_better else 1.0
-    best, last_val = math.inf, {}
-    if state is not None:
-        weights, meta = load_weights(out / "last", kind=kind)
-        if meta["config"]["model"] != config["model"]:
-            raise ValueError(f"{out / 'last'}: its model config {meta['config']['model']} differs from {config['model']}")
-        net.load_state_dict(weights)
-        opt.load_state_dict(state["optimizer"])
-        for group in opt.param_groups:
-            group.update(lr=cfg.lr)
-        step, epoch, done = state["step"], state["epoch"], state["batches_done"]
-        best, last_val = state["best"], dict(state["val"])
-        _set_rng_state(state["rng"][0], dev)
-        _truncate_log(out / "log.csv", step)
-        say(f"resumed from {out / 'last'} at step {step} (epoch {epoch}, batch {done})")
-
-    def checkpoint(folder: str, with_state: bool) -> None:
-        if not all(torch.isfinite(p).all() for p in net.parameters()):
-            raise TrainingDiverged(f"non-finite weights at step {step}; stopping (the last good checkpoint is kept)")
-        train_state = None
-        if with_state:
-            train_state = {"optimizer": opt.state_dict(), "step": step, "epoch": epoch, "batches_done": done,
-                           "best": best, "val": last_val, "rng": [_rng_state(dev)]}
-        save_checkpoint(out / folder, model=net, kind=kind, config=config, step=step,
-                        extra={**extra(), "val": last_val, "best_" + best_key: None if math.isinf(best) else sign * best},
-                        state=train_state)
-
-    log = RunLog(out)
-    batches = _train_batches(ds, sampler, epoch, done, cfg.num_workers, cfg.seed, dev.type == "cuda")
-    bar = tqdm(total=cfg.max_steps, initial=step, disable=not progress, file=sys.stderr, dynamic_ncols=True, desc=desc)
-    sums: dict[str, float] = {}
-    count, tic, train_loss = 0, time.perf_counter(), math.nan
-    net.train()
-    while step < cfg.max_steps:
-        epoch, done, batch = next(batches)
-        losses = step_fn(batch)  # forward, backward and clipping; the update waits for the check
-        check_finite(losses, step + 1)
-        opt.step()
-        step += 1
-        for k, v in losses.items():
-            sums[k] = sums.get(k, 0.0) + v
-        count += 1
-        bar.update(1)
-        bar.set_postfix(loss=f"{losses['loss']:.3f}")
-        row: dict[str, float] = {}
-        if step % cfg.log_every == 0 or step == cfg.max_steps:
-            row.update({k: v / count for k, v in sums.items()}, lr=opt.param_groups[0]["lr"],
-                       sec_per_step=(time.perf_counter() - tic) / count, epoch=epoch)
-            train_loss = row["loss"]
-            sums, count = {}, 0
-        if step % cfg.val_every == 0 or step == cfg.max_steps:
-            last_val = validate()
-            net.train()
-            row.update({f"val_{k}": v for k, v in last_val.items()})
-            if best_key in last_val and sign * last_val[best_key] < best:
-                best = sign * last_val[best_key]
-                checkpoint("best", with_state=False)
-            if not math.isinf(best):
-                row[f"best_val_{best_key}"] = sign * best
-        if row:
-            log.write(step, **row)
-        if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
-            checkpoint("last", with_state=True)
-        if "loss" in row:
-            tic = time.perf_counter()
-    bar.close()
-    log.close()
-    if math.isnan(train_loss) and count:
-        train_loss = sums["loss"] / count
-    return {"step": step, "train_loss": train_loss, "val": last_val,
-            f"best_val_{best_key}": None if math.isinf(best) else sign * best}
-
-
 def _clip(params, limit: float) -> torch.Tensor:
     return torch.nn.utils.clip_grad_norm_(list(params), limit if limit > 0 else math.inf)
+
+
+def _splits(paths: list[str]) -> tuple[str | None, str | None]:
+    """(the split to validate on: val, else test; the held-out split: test, else val)."""
+    return _split_with_data(paths, ("val", "test")), _split_with_data(paths, ("test", "val"))
+
+
+def _finish(env: Env, p: Progress, metric: str, heldout: dict) -> dict:
+    """Write ``heldout.json``; what both trainers return."""
+    (env.out / "heldout.json").write_text(json.dumps(heldout, indent=1))
+    return {"step": p.step, "train_loss": p.train_loss, "val": p.val, f"best_val_{metric}": p.best_value,
+            "heldout": heldout}
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # The text-motion evaluator
 
-def train_evaluator(
-    data: str | os.PathLike | Sequence[str | os.PathLike],
-    out: str | os.PathLike,
-    *,
-    config: EvaluatorConfig | None = None,
-    train_config: EvaluatorTrainConfig | None = None,
-    device: str = "auto",
-    resume: bool = False,
-    force: bool = False,
-    progress: bool = True,
-    text_encoder_path: str | os.PathLike | None = None,
-) -> dict:
+def train_evaluator(data: str | os.PathLike | Sequence[str | os.PathLike], out: str | os.PathLike, *,
+                    config: EvaluatorConfig | None = None, train_config: EvaluatorTrainConfig | None = None,
+                    device: str = "auto", resume: bool = False, force: bool = False, progress: bool = True,
+                    text_encoder_path: str | os.PathLike | None = None) -> dict:
     """Train our text-motion evaluator on the 'train' split of the shards (captioned windows).
 
     Returns {"step", "train_loss", "val", "best_val_loss", "heldout": {r_precision_top1..3, mm_dist, pairs,
     group_size, chance_top1..3, split}}; ``heldout`` is also written to ``out/heldout.json``.
     Raises TrainingDiverged on a NaN/inf loss, leaving the last good checkpoint in place.
     """
-    from lsgan.models.text import load_text_encoder
-
     cfg, tcfg = config or EvaluatorConfig(), train_config or EvaluatorTrainConfig()
-    paths, out, dev = _paths(data), Path(out), pick_device(device)
-    claim_run(out, resume=resume, force=force)
+    paths = shard_paths(data)
+    return launch("train_evaluator", out, device=device, resume=resume, force=force, progress=progress,
+                  distributed=False, body=lambda env: _train_text(env, paths, cfg, tcfg, text_encoder_path))
+
+
+def _train_text(env: Env, paths: list[str], cfg: EvaluatorConfig, tcfg: EvaluatorTrainConfig,
+                text_encoder_path: str | os.PathLike | None) -> dict:
     if tcfg.max_frames > cfg.max_motion_length:
         raise ValueError(f"train.max_frames ({tcfg.max_frames}) exceeds model.max_motion_length ({cfg.max_motion_length})")
     if tcfg.min_frames < cfg.unit_length:
         raise ValueError(f"train.min_frames ({tcfg.min_frames}) is below the unit length ({cfg.unit_length})")
-    say = _say_to(out)
-    state = _start(out, resume, say)
+    prev = env.previous("evaluator")
     seed_everything(tcfg.seed)
-
     ds = MotionDataset(paths, "train", min_frames=tcfg.min_frames, max_frames=tcfg.max_frames,
                        unit_length=cfg.unit_length, require_captions=True)
     ds.windows = [w for w in ds.windows if w.captions]
     if not len(ds):
         raise ValueError(f"no captioned training windows of {tcfg.min_frames}+ frames in {paths}: the text evaluator "
                          f"needs captions (for action labels use kind 'action')")
-    sampler = LengthBucketSampler(ds.lengths(), tcfg.batch_size, drop_last=True, seed=tcfg.seed)
-    if len(sampler) == 0:
-        raise ValueError(f"{len(ds)} training windows make less than one batch of {tcfg.batch_size}; lower batch_size")
-    val_split = _split_with_data(paths, ("val", "test"))
-    test_split = _split_with_data(paths, ("test", "val"))
+    val_split, test_split = _splits(paths)
     kw = {"min_frames": tcfg.min_frames, "max_frames": tcfg.max_frames, "seed": tcfg.seed}
     val = heldout_pairs(paths, val_split, **kw) if val_split else ([], [], [])
     if len(val[0]) < 3:
-        say(f"{len(val[0])} validation pairs: no validation; best/ is the last checkpoint")
+        env.say(f"{len(val[0])} validation pairs: no validation; best/ is the last checkpoint")
+    t = _text_trainer(env, ds, val, cfg, tcfg, text_encoder_path, paths)
+    p = fit(env, t, tcfg.schedule(), prev, intro=f"{len(ds)} training windows, {len(val[0])} validation pairs "
+            f"({val_split}); {sum(w.numel() for w in t.model.parameters()):,} trainable parameters; "
+            f"device {env.device}")
 
+    heldout: dict = {"split": test_split}
+    if test_split is not None:
+        feats, caps, _ = heldout_pairs(paths, test_split, **kw)
+        if len(feats) >= 3:
+            final = load_learned_evaluator(env.out, env.device, text_encoder_path=text_encoder_path)
+            heldout.update(retrieval_report(final.embed_texts(caps), final.embed_motions(feats),
+                                            group_size=tcfg.group_size, repeats=tcfg.eval_repeats, seed=tcfg.seed))
+            heldout["evaluator"] = final.id
+    if "r_precision_top3" not in heldout:
+        env.say("no held-out split with 3+ captioned windows: no retrieval figures")
+    return _finish(env, p, "loss", heldout)
+
+
+def _text_trainer(env: Env, ds: MotionDataset, val: tuple[list, list, list], cfg: EvaluatorConfig,
+                  tcfg: EvaluatorTrainConfig, text_encoder_path: str | os.PathLike | None, paths: list[str]) -> Trainer:
+    """T2M's contrastive step on a batch of windows; the validation loss and R-precision on fixed pairs."""
+    from lsgan.models.text import load_text_encoder
+
+    dev = env.device
+    sampler = LengthBucketSampler(ds.lengths(), tcfg.batch_size, drop_last=True, seed=tcfg.seed)
+    if len(sampler) == 0:
+        raise ValueError(f"{len(ds)} training windows make less than one batch of {tcfg.batch_size}; lower batch_size")
     enc = load_text_encoder(cfg.text_encoder, path=text_encoder_path, device=dev)
     net = EvaluatorNet(cfg, enc.dim).to(dev)
     ev = LearnedEvaluator(net, enc, ds.mean, ds.std, id="(training)", device=dev)
     captions = sorted({c.text for caps in ds.captions for clip in caps for c in clip} | set(val[1]))
-    t0 = time.perf_counter()
+    tic = time.perf_counter()
     ev.sentence_vectors(captions)
+    env.say(f"{len(captions)} captions embedded with {enc.id} in {time.perf_counter() - tic:.1f} s")
     opt = torch.optim.Adam(net.parameters(), lr=tcfg.lr)
-    config_dict = {"model": asdict(cfg), "train": asdict(tcfg)}
-    if state is None:
-        say(f"{len(ds)} training windows ({len(captions)} captions embedded with {enc.id} in "
-            f"{time.perf_counter() - t0:.1f} s), {len(val[0])} validation pairs ({val_split}); "
-            f"{sum(p.numel() for p in net.parameters()):,} trainable parameters; device {dev}")
     motion_params = [*net.movement_encoder.parameters(), *net.motion_encoder.parameters()]
-    pad_to = cfg.max_motion_length
 
-    def step_fn(batch: dict) -> dict[str, float]:
+    def step(batch: dict) -> dict[str, torch.Tensor]:
         x, lengths = batch["motion"], batch["length"]
-        if x.shape[1] < pad_to:  # pad as at inference (the last convolution window reaches the padding)
-            x = torch.nn.functional.pad(x, (0, 0, 0, pad_to - x.shape[1]))
+        if x.shape[1] < cfg.max_motion_length:  # pad as at inference (the last convolution window reaches the padding)
+            x = torch.nn.functional.pad(x, (0, 0, 0, cfg.max_motion_length - x.shape[1]))
         mot = net.embed_motion(x.to(dev, non_blocking=True), lengths)
         txt = net.embed_sentence(ev.sentence_vectors(batch["caption"]).to(dev))
         b = len(lengths)
@@ -371,52 +261,31 @@ def train_evaluator(
         loss = loss_pos + loss_neg
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        g_text = _clip(net.text_head.parameters(), tcfg.grad_clip)
-        g_motion = _clip(motion_params, tcfg.grad_clip)
-        values = {"loss": loss.item(), "loss_pos": loss_pos.item(), "loss_neg": loss_neg.item(),
-                  "grad_norm_text": g_text.item(), "grad_norm_motion": g_motion.item()}
-        return values
+        grad_norms = {"grad_norm_text": _clip(net.text_head.parameters(), tcfg.grad_clip),
+                      "grad_norm_motion": _clip(motion_params, tcfg.grad_clip)}
+        opt.step()
+        return {"loss": loss, "loss_pos": loss_pos, "loss_neg": loss_neg, **grad_norms}
 
     def validate() -> dict[str, float]:
         if len(val[0]) < 3:
             return {}
         net.eval()
-        m = torch.from_numpy(ev.embed_motions(val[0]))
-        t = torch.from_numpy(ev.embed_texts(val[1]))
-        neg = m.roll(1, 0)
+        m, t = torch.from_numpy(ev.embed_motions(val[0])), torch.from_numpy(ev.embed_texts(val[1]))
         pos_l = contrastive_loss(t, m, False, tcfg.margin).item()
-        neg_l = contrastive_loss(t, neg, True, tcfg.margin).item()
+        neg_l = contrastive_loss(t, m.roll(1, 0), True, tcfg.margin).item()
         rep = retrieval_report(t.numpy(), m.numpy(), group_size=tcfg.group_size, repeats=1, seed=tcfg.seed)
         return {"loss": pos_l + neg_l, "loss_pos": pos_l, "loss_neg": neg_l,
                 "r_precision_top1": rep["r_precision_top1"], "r_precision_top3": rep["r_precision_top3"],
                 "mm_dist": rep["mm_dist"]}
 
-    def extra() -> dict:
-        return {"mean": ds.mean.tolist(), "std": ds.std.tolist(), "text_encoder_id": enc.id,
-                "text_encoder_path": None if text_encoder_path is None else os.fspath(text_encoder_path),
-                "data": paths}
-
-    result = _loop(out=out, kind="evaluator", desc="evaluator", net=net, opt=opt, ds=ds, sampler=sampler, cfg=tcfg,
-                   dev=dev, state=state, config=config_dict, step_fn=step_fn, validate=validate, best_key="loss",
-                   higher_is_better=False, extra=extra, progress=progress, say=say)
-    if not (out / "best").exists():  # no validation: the last checkpoint is the one to use
-        import shutil
-
-        shutil.copytree(out / "last", out / "best", ignore=shutil.ignore_patterns("state.pt"))
-
-    heldout: dict = {"split": test_split}
-    if test_split is not None:
-        feats, caps, _ = heldout_pairs(paths, test_split, **kw)
-        if len(feats) >= 3:
-            final = load_learned_evaluator(out, dev, text_encoder_path=text_encoder_path)
-            heldout.update(retrieval_report(final.embed_texts(caps), final.embed_motions(feats),
-                                            group_size=tcfg.group_size, repeats=tcfg.eval_repeats, seed=tcfg.seed))
-            heldout["evaluator"] = final.id
-    if "r_precision_top3" not in heldout:
-        say("no held-out split with 3+ captioned windows: no retrieval figures")
-    (out / "heldout.json").write_text(json.dumps(heldout, indent=1))
-    result["heldout"] = heldout
-    return result
+    extra = {"mean": ds.mean.tolist(), "std": ds.std.tolist(), "text_encoder_id": enc.id,
+             "text_encoder_path": None if text_encoder_path is None else os.fspath(text_encoder_path), "data": paths}
+    return Trainer(
+        kind="evaluator", desc="evaluator", model=net, config={"model": asdict(cfg), "train": asdict(tcfg)},
+        optimizers={"optimizer": opt}, step=step, validate=validate, metric="loss",
+        batches=EpochBatches(ds, sampler, num_workers=tcfg.num_workers, seed=tcfg.seed, pin=dev.type == "cuda"),
+        extra=lambda p: {**extra, "val": p.val, "best_loss": p.best_value},
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -473,27 +342,23 @@ class ActionWindows(Dataset):
         return out
 
 
-def train_action_classifier(
-    data: str | os.PathLike | Sequence[str | os.PathLike],
-    out: str | os.PathLike,
-    *,
-    config: ActionClassifierConfig | None = None,
-    train_config: ActionTrainConfig | None = None,
-    device: str = "auto",
-    resume: bool = False,
-    force: bool = False,
-    progress: bool = True,
-) -> dict:
+def train_action_classifier(data: str | os.PathLike | Sequence[str | os.PathLike], out: str | os.PathLike, *,
+                            config: ActionClassifierConfig | None = None, train_config: ActionTrainConfig | None = None,
+                            device: str = "auto", resume: bool = False, force: bool = False,
+                            progress: bool = True) -> dict:
     """Train the action-recognition GRU on the action-labelled 'train' clips of the shards.
 
     Returns {"step", "train_loss", "val", "best_val_accuracy", "heldout": {accuracy, clips, chance, split}};
     ``heldout`` (test split, else val) is also written to ``out/heldout.json``.
     """
     cfg, tcfg = config or ActionClassifierConfig(), train_config or ActionTrainConfig()
-    paths, out, dev = _paths(data), Path(out), pick_device(device)
-    claim_run(out, resume=resume, force=force)
-    say = _say_to(out)
-    state = _start(out, resume, say)
+    paths = shard_paths(data)
+    return launch("train_action_classifier", out, device=device, resume=resume, force=force, progress=progress,
+                  distributed=False, body=lambda env: _train_action(env, paths, cfg, tcfg))
+
+
+def _train_action(env: Env, paths: list[str], cfg: ActionClassifierConfig, tcfg: ActionTrainConfig) -> dict:
+    prev = env.previous("action-classifier")
     seed_everything(tcfg.seed)
     kw = {"min_frames": tcfg.min_frames, "max_frames": tcfg.max_frames}
     ds = ActionWindows(paths, "train", **kw)
@@ -503,60 +368,52 @@ def train_action_classifier(
     if num_classes < len(ds.action_names):
         raise ValueError(f"num_classes={num_classes} but the data has {len(ds.action_names)} action labels")
     cfg = ActionClassifierConfig(**{**asdict(cfg), "num_classes": num_classes})
-    sampler = LengthBucketSampler(ds.lengths(), tcfg.batch_size, drop_last=len(ds) >= tcfg.batch_size, seed=tcfg.seed)
-    val_split = _split_with_data(paths, ("val", "test"))
-    test_split = _split_with_data(paths, ("test", "val"))
+    val_split, test_split = _splits(paths)
     val_ds = ActionWindows(paths, val_split, **kw) if val_split else None
+    t = _action_trainer(env, ds, val_ds, cfg, tcfg, paths)
+    p = fit(env, t, tcfg.schedule(), prev, intro=f"{len(ds)} training clips, {len(val_ds or [])} validation clips "
+            f"({val_split}), {num_classes} classes; {sum(w.numel() for w in t.model.parameters()):,} parameters; "
+            f"device {env.device}")
+
+    heldout: dict = {"split": test_split}
+    test = ActionWindows(paths, test_split, **kw) if test_split is not None else []
+    if len(test):
+        clf, labels = load_action_classifier(env.out, env.device), np.array(test.labels)
+        pred = clf.predict(test.fixed())
+        heldout.update(accuracy=float((pred == labels).mean()), clips=len(test), chance=1.0 / num_classes,
+                       majority=float(np.bincount(labels).max() / len(labels)), classifier=clf.id)
+    return _finish(env, p, "accuracy", heldout)
+
+
+def _action_trainer(env: Env, ds: ActionWindows, val_ds: ActionWindows | None, cfg: ActionClassifierConfig,
+                    tcfg: ActionTrainConfig, paths: list[str]) -> Trainer:
+    """Cross-entropy on a batch of crops; the accuracy on the validation clips, centre-cropped."""
+    dev = env.device
+    sampler = LengthBucketSampler(ds.lengths(), tcfg.batch_size, drop_last=len(ds) >= tcfg.batch_size, seed=tcfg.seed)
     val_joints = val_ds.fixed() if val_ds is not None else []
     net = ActionRecognitionGRU(cfg).to(dev)
     opt = torch.optim.Adam(net.parameters(), lr=tcfg.lr)
-    config_dict = {"model": asdict(cfg), "train": asdict(tcfg)}
-    if state is None:
-        say(f"{len(ds)} training clips, {len(val_joints)} validation clips ({val_split}), {num_classes} classes; "
-            f"{sum(p.numel() for p in net.parameters()):,} parameters; device {dev}")
 
-    def step_fn(batch: dict) -> dict[str, float]:
+    def step(batch: dict) -> dict[str, torch.Tensor]:
         x, lengths, y = batch["motion"].to(dev), batch["length"], batch["action"].to(dev)
         _, logits = net(x, lengths)
         loss = torch.nn.functional.cross_entropy(logits, y)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        g = _clip(net.parameters(), tcfg.grad_clip)
-        values = {"loss": loss.item(), "accuracy": (logits.argmax(1) == y).float().mean().item(), "grad_norm": g.item()}
-        return values
-
-    def classifier() -> object:
-        from lsgan.models.evaluator import ActionClassifier
-
-        return ActionClassifier(net, ds.action_names, id="(training)", device=dev)
+        grad_norm = _clip(net.parameters(), tcfg.grad_clip)
+        opt.step()
+        return {"loss": loss, "accuracy": (logits.argmax(1) == y).float().mean(), "grad_norm": grad_norm}
 
     def validate() -> dict[str, float]:
         if not val_joints:
             return {}
-        pred = classifier().predict(val_joints)
+        pred = ActionClassifier(net, ds.action_names, id="(training)", device=dev).predict(val_joints)
         return {"accuracy": float((pred == np.array(val_ds.labels)).mean())}
 
-    def extra() -> dict:
-        return {"action_names": ds.action_names, "data": paths}
-
-    result = _loop(out=out, kind="action-classifier", desc="action-classifier", net=net, opt=opt, ds=ds,
-                   sampler=sampler, cfg=tcfg, dev=dev, state=state, config=config_dict, step_fn=step_fn,
-                   validate=validate, best_key="accuracy", higher_is_better=True, extra=extra, progress=progress,
-                   say=say)
-    if not (out / "best").exists():
-        import shutil
-
-        shutil.copytree(out / "last", out / "best", ignore=shutil.ignore_patterns("state.pt"))
-    heldout: dict = {"split": test_split}
-    if test_split is not None:
-        test = ActionWindows(paths, test_split, **kw)
-        if len(test):
-            clf = load_action_classifier(out, dev)
-            labels = np.array(test.labels)
-            pred = clf.predict(test.fixed())
-            heldout.update(accuracy=float((pred == labels).mean()), clips=len(test),
-                           chance=1.0 / num_classes,
-                           majority=float(np.bincount(labels).max() / len(labels)), classifier=clf.id)
-    (out / "heldout.json").write_text(json.dumps(heldout, indent=1))
-    result["heldout"] = heldout
-    return result
+    return Trainer(
+        kind="action-classifier", desc="action-classifier", model=net,
+        config={"model": asdict(cfg), "train": asdict(tcfg)}, optimizers={"optimizer": opt}, step=step,
+        validate=validate, metric="accuracy", higher_is_better=True,
+        batches=EpochBatches(ds, sampler, num_workers=tcfg.num_workers, seed=tcfg.seed, pin=dev.type == "cuda"),
+        extra=lambda p: {"action_names": ds.action_names, "data": paths, "val": p.val, "best_accuracy": p.best_value},
+    )

@@ -1,8 +1,9 @@
 """What the trainers on the latent cache (``train_gan``, ``train_diffusion``) share.
 
-Training pairs (condition, standardised latent) from the cache, the config fitted to the cache's widths, the
-latent-FID evaluation set (val, else test, else train) and its score, per-step reseeding, the DDP wrapper, the
-run folder (what ``resume`` continues, and what is refused) and the checkpoint meta that ``generate`` reads.
+Training pairs (condition, standardised latent) from the cache, the config fitted to the cache's widths (or the
+continued run's own, on latents of the same VAE), the latent-FID evaluation set (val, else test, else train) and its
+score, their Trainer for :func:`lsgan.train.loop.fit` (a generator reseeded per step, the latent FID from step 0),
+the checkpoint meta that ``generate`` reads and the summary they return.
 """
 from __future__ import annotations
 
@@ -14,16 +15,43 @@ from typing import TypeVar
 
 import numpy as np
 import torch
-from torch.nn.parallel import DistributedDataParallel
 
 from lsgan.eval.metrics import fid
-from lsgan.models.cache import LatentCacheData, StaleCache
-from lsgan.models.checkpoint import CONFIG, load_state, load_weights
-from lsgan.train.common import Dist
+from lsgan.models.cache import LatentCacheData, StaleCache, read_latent_cache
+from lsgan.train.loop import Env, Previous, Progress, Schedule, SeededSteps, Trainer
 
 C = TypeVar("C")
 
 EVAL_SPLITS = ("val", "test", "train")
+
+
+@dataclass
+class LatentTrainConfig:
+    """Settings that mean the same for both latent trainers; GANTrainConfig and DiffusionTrainConfig add their own
+    (and their optimiser defaults)."""
+
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.9, 0.999)
+    weight_decay: float = 0.0
+    batch_size: int = 64  # in all: each of W torchrun processes takes batch_size / W
+    max_steps: int = 100_000
+    eval_every: int = 1000
+    ckpt_every: int = 1000
+    log_every: int = 50
+    fid_samples: int = 2048
+    real_latents: str = "sample"  # "sample": z ~ N(mu, exp(logvar)) each step; "mean": mu
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.betas = tuple(self.betas)
+        if self.real_latents not in ("sample", "mean"):
+            raise ValueError(f"real_latents must be 'sample' or 'mean', not {self.real_latents!r}")
+        for name in ("batch_size", "max_steps", "eval_every", "ckpt_every", "log_every", "fid_samples"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+
+    def schedule(self) -> Schedule:
+        return Schedule(self.max_steps, self.log_every, self.eval_every, self.ckpt_every)
 
 
 def pairs(cache: LatentCacheData, cond: str, split: str) -> tuple[np.ndarray, np.ndarray]:
@@ -127,44 +155,77 @@ def latent_fid(model: torch.nn.Module, ev: EvalSet, seed: int, chunk: int = 4096
     return fid(fake, ev.real)
 
 
-def step_generator(g: torch.Generator, seed: int, rank: int, step: int) -> torch.Generator:
-    """Reseed ``g`` from (seed, rank, step): the step's randomness does not depend on the run's history."""
-    return g.manual_seed(int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0]))
+@dataclass
+class LatentData:
+    """What a latent trainer reads from the cache: the train pairs, the latent-FID set and its per-process batch."""
+
+    cache: LatentCacheData
+    path: Path
+    pairs: LatentPairs
+    ev: EvalSet
+    batch: int
 
 
-def wrap_ddp(module: torch.nn.Module, d: Dist, device: torch.device) -> torch.nn.Module:
-    """``module`` in DistributedDataParallel under torchrun, itself otherwise."""
-    if not d.enabled:
-        return module
-    return DistributedDataParallel(module, device_ids=[device.index] if device.type == "cuda" else None)
-
-
-def previous_run(
-    out: Path, cache: LatentCacheData, cfg: C, resume: bool, say: Callable[[str], None], *, kind: str
-) -> tuple[C, dict | None]:
-    """The run in ``out/last`` to continue: (its model config, {weights, state, step, fid}); never overwritten unasked.
+def open_cache(env: Env, cache_path: Path, cfg: C, train: LatentTrainConfig, kind: str, expect_vae_hash: str | None,
+               expect_text_encoder: str | None) -> tuple[C, Previous | None, LatentData]:
+    """(model config fitted to the cache, or the continued run's own; the run to continue; the data).
 
     ``kind``: the checkpoint kind ("gan", "diffusion"), also the key of the model config in config.json.
     """
-    if not (out / "last" / CONFIG).exists():
-        if resume:
-            say(f"nothing to resume in {out}: starting a new run")
-        return cfg, None
-    if not resume:
-        raise FileExistsError(f"{out} already holds a run (last/); pass resume=True to continue it, or another folder")
-    weights, meta = load_weights(out / "last", kind=kind)
-    if meta["extra"].get("vae_hash") != cache.vae_hash:
-        raise StaleCache(f"{out} was trained on latents of another VAE than the cache's; cannot resume on this cache")
+    cache = read_latent_cache(cache_path, expect_vae_hash=expect_vae_hash, expect_text_encoder=expect_text_encoder)
+    cfg, fitted = fit_config(cfg, cache)
+    for msg in fitted:
+        env.say(msg)
+    prev = env.previous(kind)
+    if prev is not None:
+        cfg = _adopt(prev, cache, cfg, kind, env.say)
+    if train.batch_size % env.dist.world_size:
+        raise ValueError(f"batch_size {train.batch_size} does not split over {env.dist.world_size} processes")
+    data = LatentPairs(cache, cfg.cond, env.device, sample=train.real_latents == "sample")
+    ev, note = eval_set(cache, cfg.cond, train.fid_samples, train.seed, env.device)
+    if note:
+        env.say(note)
+    if len(ev.real) < 2:
+        env.say(f"the {ev.split} split has fewer than 2 clips: no latent FID; best/ will be the last checkpoint")
+    return cfg, prev, LatentData(cache, cache_path, data, ev, train.batch_size // env.dist.world_size)
+
+
+def _adopt(prev: Previous, cache: LatentCacheData, cfg: C, kind: str, say: Callable[[str], None]) -> C:
+    """The continued run's own model config; its latents must come from the cache's VAE."""
+    if prev.meta["extra"].get("vae_hash") != cache.vae_hash:
+        raise StaleCache(f"{prev.folder.parent} was trained on latents of another VAE than the cache's; cannot resume "
+                         "on this cache")
     known = {f.name for f in fields(type(cfg))}
-    saved = type(cfg)(**{k: v for k, v in meta["config"][kind].items() if k in known})
+    saved = type(cfg)(**{k: v for k, v in prev.meta["config"][kind].items() if k in known})
     if saved != cfg:
         label = getattr(saved, "arch", None)
         say(f"resuming with the run's own {kind.upper() if kind == 'gan' else kind} config"
             f"{f' ({label})' if label else ''}, not the one given")
-    fid_value = meta["extra"].get("val_latent_fid")
-    run = {"weights": weights, "state": load_state(out / "last"), "step": int(meta["step"]),
-           "fid": math.nan if fid_value is None else float(fid_value)}
-    return saved, run
+    return saved
+
+
+def latent_trainer(env: Env, kind: str, desc: str, model: torch.nn.Module, config: dict,
+                   optimizers: dict[str, torch.optim.Optimizer], step: Callable, data: LatentData, seed: int,
+                   **sample_options) -> Trainer:
+    """A latent model's Trainer: one seeded generator per step, scored (from step 0) by the latent FID."""
+    return Trainer(
+        kind=kind, desc=desc, model=model, config=config, optimizers=optimizers, step=step,
+        batches=SeededSteps(seed, env.dist.rank, env.device), metric="latent_fid", val_prefix="", log_details=False,
+        same_config=None,
+        validate=lambda: {"latent_fid": latent_fid(model, data.ev, seed, **sample_options)}, val_at_start=True,
+        extra=lambda p: checkpoint_extra(data.cache, data.path, p.val.get("latent_fid", math.nan), data.ev.split),
+    )
+
+
+def latent_summary(env: Env, p: Progress, data: LatentData, config: dict) -> dict:
+    """What train_gan and train_diffusion return (each adds its own settings)."""
+    last = p.val.get("latent_fid", math.nan)
+    return {
+        "out": str(env.out), "step": p.step, "best_val_latent_fid": p.best_value,
+        "last_val_latent_fid": None if math.isnan(last) else last,
+        "fid_history": [(step, val["latent_fid"]) for step, val in p.history], "eval_split": data.ev.split,
+        "config": config, "notes": env.notes, "steps_per_s": p.steps_per_s,
+    }
 
 
 def checkpoint_extra(cache: LatentCacheData, cache_path: Path, fid_value: float, eval_split: str) -> dict:

@@ -20,6 +20,7 @@ from lsgan.data.clip import Caption, ClipError, RawClip
 from lsgan.data.joint_maps import JointMap, apply_joint_map, get_joint_map
 from lsgan.data.resample import resample
 from lsgan.data.skeleton import FPS
+from lsgan.data.tokens import tokenize
 
 _SUFFIXES = (".bvh.gz", ".bvh")
 _BANDAI_PREFIX = re.compile(r"^dataset-\d+_")
@@ -124,7 +125,7 @@ class BvhSource:
             labels = bandai_labels(item)
             if labels is not None:
                 action = labels[0]
-                captions = [Caption(text=t) for t in bandai_captions(*labels)]
+                captions = [Caption(text=t, tokens=tokenize(t)) for t in bandai_captions(*labels)]
         return [
             RawClip(
                 name=clip_name(item),

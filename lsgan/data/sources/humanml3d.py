@@ -10,12 +10,18 @@ import numpy as np
 
 from lsgan.data.clip import Caption, ClipError, RawClip, load_npy
 from lsgan.data.skeleton import FEATURE_DIM
+from lsgan.data.tokens import tokenize
 
 SPLITS = ("train", "val", "test")
 
 
 def parse_caption_line(line: str) -> Caption | None:
-    """One line of a HumanML3D text file, ``caption#tokens#start#end``; plain text is a whole-clip caption."""
+    """One line of a HumanML3D text file, ``caption#tokens#start#end``; plain text is a whole-clip caption.
+
+    The tokens are kept as the line gives them (tagged by lsgan.data.tokens only when it has none); each
+    time tag is ``float`` of its text, NaN included, as T2M's loaders read it (a missing or non-numeric
+    tag counts as 0.0 here; T2M would skip the clip). :func:`lsgan.data.captions.span_frames` makes frames.
+    """
     line = line.strip()
     if not line:
         return None
@@ -27,8 +33,7 @@ def parse_caption_line(line: str) -> Caption | None:
         end = float(parts[3]) if len(parts) > 3 and parts[3].strip() else 0.0
     except ValueError:
         start = end = 0.0
-    start, end = (0.0, 0.0) if np.isnan(start) or np.isnan(end) else (start, end)
-    return Caption(text=text, tokens=tokens, start=start, end=end)
+    return Caption(text=text, tokens=tokens or tokenize(text), start=start, end=end)
 
 
 def read_captions(path: Path) -> list[Caption]:

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 from lsgan.data.clip import Caption, ClipError, RawClip
 from lsgan.data.synthetic import clip_family, synthetic_clip
+from lsgan.data.tokens import tokenize
 
 
 @dataclass
@@ -43,7 +44,7 @@ class SyntheticSource:
                 name=clip.name,
                 source_file="synthetic",
                 joints=clip.joints,
-                captions=[Caption(text=text) for text in clip.captions],
+                captions=[Caption(text=text, tokens=tokenize(text)) for text in clip.captions],
                 action=clip.action,
                 mirror=self.mirror,
             )
