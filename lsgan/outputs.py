@@ -236,7 +236,8 @@ def clear_ours(folder: Path) -> list[Path]:
         if p.is_dir() and not p.is_symlink() and (p / REGISTRY).exists():
             removed += clear_ours(p)
             if not any(q.name != REGISTRY for q in p.iterdir()):
-                shutil.rmtree(p)
+                (p / REGISTRY).unlink(missing_ok=True)
+                p.rmdir()
     if data["entries"]:
         _write_registry(folder, data)
     else:

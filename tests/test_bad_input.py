@@ -452,3 +452,35 @@ def test_plausible_imports_are_not_warned(tmp_path: Path) -> None:
                 cwd=tmp_path)
     assert out.returncode == 0 and "warning:" not in out.stderr, out.stderr
     assert "3 clips checked, 0 flagged" in out.stderr
+
+
+def test_staging_cleanup_keeps_files_lsgan_did_not_write(tmp_path: Path) -> None:
+    """A file the user put in OUTPUT.parts/ (even named like a chunk) survives the resumed run's clean-up."""
+    from lsgan.data.preprocess import preprocess
+    from lsgan.data.sources.synthetic import SyntheticSource
+
+    def stop(done, total):
+        if done >= 16:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        preprocess(SyntheticSource(num_clips=40), tmp_path / "s.h5", on_progress=stop)
+    mine = tmp_path / "s.h5.parts" / "chunk_mine.npz"
+    mine.write_bytes(b"the user's own file")
+    preprocess(SyntheticSource(num_clips=40), tmp_path / "s.h5", resume=True)
+    assert mine.read_bytes() == b"the user's own file"
+    assert sorted(p.name for p in mine.parent.iterdir()) == [".lsgan-outputs.json", "chunk_mine.npz"]  # ours gone
+
+
+def test_force_keeps_a_last_folder_lsgan_did_not_write(tmp_path: Path) -> None:
+    """--force on a training folder removes only lsgan's checkpoints: a user's own last/ is refused."""
+    from lsgan.outputs import OutputError
+    from lsgan.train.common import claim_run
+
+    (tmp_path / "run" / "last").mkdir(parents=True)
+    (tmp_path / "run" / "last" / "notes.txt").write_text("mine")
+    (tmp_path / "run" / "log.csv").write_text("step\n")
+    with pytest.raises(OutputError, match="not a checkpoint lsgan wrote"):
+        claim_run(tmp_path / "run", resume=False, force=True)
+    assert (tmp_path / "run" / "last" / "notes.txt").read_text() == "mine"
+    assert (tmp_path / "run" / "log.csv").exists()

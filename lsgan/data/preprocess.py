@@ -272,7 +272,7 @@ def _open_staging(staging: Path, manifest: dict, keep: set[str]) -> None:
                                   "move it away")
         outputs.sweep_folder_temps(staging)
         for p in staging.glob("chunk_*.npz"):
-            if p.name not in keep:
+            if p.name not in keep and outputs.is_ours(p):
                 p.unlink()
     with atomic_file(staging / "manifest.json", "w", encoding="utf-8") as f:
         json.dump(manifest, f, indent=1)
@@ -280,9 +280,12 @@ def _open_staging(staging: Path, manifest: dict, keep: set[str]) -> None:
 
 def _close_staging(staging: Path, paths: list[Path]) -> None:
     """Remove the staging folder's own files, and the folder when nothing else is left in it."""
-    for p in [*paths, staging / "manifest.json", staging / outputs.REGISTRY]:
-        p.unlink(missing_ok=True)
+    for p in [*paths, staging / "manifest.json"]:
+        if outputs.is_ours(p):
+            p.unlink()
     outputs.sweep_folder_temps(staging)
+    if not any(p.name != outputs.REGISTRY for p in staging.iterdir()):
+        (staging / outputs.REGISTRY).unlink(missing_ok=True)
     try:
         staging.rmdir()
     except OSError:

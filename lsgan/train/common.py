@@ -221,6 +221,10 @@ def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
     if not force:
         raise outputs.OutputError(f"{out}: already holds a run; pass --resume to continue it or --force to start "
                                   "over (only the run's own files are removed)")
+    foreign = [n for n in ("last", "best") if (out / n).exists() and not outputs.is_ours(out / n)]
+    if foreign:
+        raise outputs.OutputError(f"{out / foreign[0]}: is not a checkpoint lsgan wrote (or was changed since); "
+                                  "not removed, even with --force")
     for name in RUN_STATE:
         p = out / name
         if p.is_dir() and not p.is_symlink():
