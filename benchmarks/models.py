@@ -2,24 +2,42 @@
 
 1. GAN training steps/s reading latents from the cache (lsgan's design) versus the naive design that runs
    the VAE encoder on every real batch, at the same batch size in the same run; reported as a ratio.
-Time per generated motion and FLOPs (GANs vs. the diffusion baseline) are measured by ``lsgan bench``.
+2. Generation end to end (MiniLM text -> deep-wgan-gp generator -> paper-sized VAE decoder, 120 frames) at batch
+   1 and 256, per runtime, all in the same run: torch fp32 eager (``lsgan generate``'s path, the baseline), torch
+   with bf16 autocast, and onnxruntime on the fp32 and int8 graphs ``lsgan export-model --onnx --int8`` writes
+   (the random-weight models are saved as runs and exported by that same code). Each figure is the median of
+   repeated runs with its quartiles, timed by ``lsgan.eval.bench.time_per_motion``, the timer ``lsgan bench``
+   uses. Beside each: the physical floor, the decoder's FLOPs over this CPU's peak at the precision (the peak
+   measured here with a 2048-cube matrix product in that precision on all cores).
+3. With ``--quality-run GAN_RUN`` (a trained text GAN; its VAE from its cache or ``--quality-vae``): the joint
+   deviation of each fast runtime from torch fp32 on the same noise, mean and max mm over 100 motions.
 
-    python benchmarks/models.py                  # CPU (and CUDA when torch sees a GPU)
+FLOPs per clip and the diffusion comparison are measured by ``lsgan bench``.
+
+    python benchmarks/models.py                  # CPU (and CUDA when torch sees a GPU, training only)
     python benchmarks/models.py --json out.json --steps 20 --frames 120
+    python benchmarks/models.py --skip-training --quality-run runs/bandai-gan
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
+import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
 
+import numpy as np
 import torch
 
-from lsgan.eval.bench import PAPER_VAE
+from lsgan.eval.bench import PAPER_VAE, Pipeline, decoder_flops, gan_sampler, time_per_motion, torch_pipeline
 from lsgan.models.gan import GANConfig, LatentGAN, critic_loss_wgan_gp, g_loss_wgan
 from lsgan.models.vae import MotionVAE
+from lsgan.threads import ThreadPolicy, threads_said
 
 PAPER_GAN = GANConfig(arch="deep-wgan-gp", noise_dim=100, latent_dim=256, cond="text", cond_dim=384)
 
@@ -93,17 +111,165 @@ def _gen_step(gan: LatentGAN, opt_g, cond: torch.Tensor) -> None:
     opt_g.step()
 
 
+# ---------------------------------------------------------------------------------------------------- generation
+
+RUNTIMES = ("torch fp32 eager", "torch bf16 autocast", "onnxruntime fp32", "onnxruntime int8")
+PRECISION = dict(zip(RUNTIMES, ("fp32", "bf16", "fp32", "int8")))
+
+
+def save_paper_runs(folder: Path) -> tuple[Path, Path]:
+    """The paper-sized VAE and a deep-wgan-gp on MiniLM's 384-d embeddings, random weights, saved as lsgan runs
+    (features and latents left unnormalised: mean 0, std 1)."""
+    from lsgan.models.checkpoint import save_checkpoint, weights_hash
+    from lsgan.models.text import load_text_encoder
+
+    torch.manual_seed(0)
+    vae_run, gan_run = folder / "vae", folder / "gan"
+    save_checkpoint(vae_run / "best", model=MotionVAE(PAPER_VAE), kind="vae", config={"model": asdict(PAPER_VAE)},
+                    step=0, extra={"mean": [0.0] * 263, "std": [1.0] * 263})
+    z = PAPER_GAN.latent_dim
+    save_checkpoint(gan_run / "best", model=LatentGAN(PAPER_GAN), kind="gan", config={"gan": asdict(PAPER_GAN)},
+                    step=0, extra={"latent_mean": [0.0] * z, "latent_std": [1.0] * z, "vae_hash": weights_hash(vae_run),
+                                   "text_encoder": load_text_encoder("minilm").id})
+    return gan_run, vae_run
+
+
+def _autocast_bf16(fn: Callable) -> Callable:
+    """``fn`` under torch's CPU autocast to bf16 (matrix products in bf16, sensitive operations in fp32)."""
+
+    def run(*args, **kwargs):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return fn(*args, **kwargs)
+
+    return run
+
+
+def onnx_pipeline(model) -> Pipeline:
+    """An exported folder (lsgan.deploy.runtime) as the timer's three stages; the noise is drawn in ``sample``."""
+    rng = np.random.default_rng(0)
+    noise_dim = int(model.manifest["noise_dim"])
+
+    def sample(cond: np.ndarray) -> np.ndarray:
+        return model.latents(rng.standard_normal((len(cond), noise_dim), dtype=np.float32), cond)
+
+    return Pipeline(model.embed, sample, lambda z, frames: model.decode(z, [frames] * len(z)))
+
+
+def generation_pipelines(gan_run: Path, vae_run: Path, onnx_dir: Path) -> dict[str, Pipeline]:
+    """Each runtime of RUNTIMES on the same models."""
+    from lsgan.deploy.runtime import load
+    from lsgan.models.gan import load_gan
+    from lsgan.models.text import load_text_encoder
+    from lsgan.models.vae import load_vae
+
+    gan, _ = load_gan(gan_run)
+    vae, _ = load_vae(vae_run)
+    enc = load_text_encoder("minilm")
+    fp32 = torch_pipeline(gan_sampler(gan.config.arch, gan, cond_dim=gan.config.cond_dim, text_encoder="minilm"),
+                          vae, enc.encode, torch.device("cpu"))
+    bf16 = Pipeline(*(_autocast_bf16(f) for f in (fp32.encode, fp32.sample, fp32.decode)))
+    return dict(zip(RUNTIMES, (fp32, bf16, onnx_pipeline(load(onnx_dir, variant="fp32")),
+                               onnx_pipeline(load(onnx_dir, variant="int8")))))
+
+
+def peak_gflops(precision: str, n: int = 2048, reps: int = 5) -> float:
+    """This CPU's matrix-product rate (GFLOP/s; int8: GOP/s) at ``precision``, best of ``reps`` n-cube products on
+    every usable core: the roof the floor is computed from."""
+    if precision == "int8":
+        a, b = (torch.randint(-128, 128, (n, n), dtype=torch.int8) for _ in range(2))
+        product = lambda: torch._int_mm(a, b)  # noqa: E731
+    else:
+        dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+        a, b = (torch.randn(n, n, dtype=dtype) for _ in range(2))
+        product = lambda: a @ b  # noqa: E731
+    with ThreadPolicy(large=True):
+        product()
+        best = min(_seconds(product) for _ in range(reps))
+    return 2 * n**3 / best / 1e9
+
+
+def _seconds(fn: Callable) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def bench_generation(frames: int, repeats: dict[int, int], workdir: Path) -> dict:
+    """ms per motion (median, quartiles) and motions/s per runtime and batch, with the decoder's floor."""
+    from lsgan.deploy.onnx_export import export_onnx
+
+    gan_run, vae_run = save_paper_runs(workdir)
+    export_onnx(gan_run, workdir / "onnx", vae=vae_run, int8=True)
+    pipelines = generation_pipelines(gan_run, vae_run, workdir / "onnx")
+    decoder_gflop = decoder_flops(MotionVAE(PAPER_VAE).eval(), frames) / 1e9
+    peaks = {p: peak_gflops(p) for p in ("fp32", "bf16", "int8")}
+    rows = []
+    for name, pipeline in pipelines.items():
+        for batch, reps in repeats.items():
+            t = time_per_motion(pipeline, batch=batch, frames=frames, repeats=reps)
+            floor = 1000.0 * decoder_gflop / peaks[PRECISION[name]]
+            rows.append({"runtime": name, "batch": batch, **t, "motions_per_s": 1000.0 / t["total"],
+                         "decoder_floor_ms": floor, "repeats": reps, "load_avg_1min": os.getloadavg()[0]})
+            print(f"[generation] {name:22s} b{batch:<4d} {t['total']:8.2f} ms/motion (q25 {t['total_q25']:.2f}, "
+                  f"q75 {t['total_q75']:.2f}; text {t['text']:.2f} + gen {t['generator']:.3f} + dec "
+                  f"{t['decoder']:.2f}) = {1000.0 / t['total']:7.1f} motions/s; decoder floor {floor:.2f} ms",
+                  file=sys.stderr, flush=True)
+    return {"frames": frames, "decoder_gflop_per_motion": decoder_gflop, "peak_gflops": peaks, "rows": rows}
+
+
+def joint_deviation(gan_run: Path, vae_run: Path | None, workdir: Path, count: int = 100) -> dict:
+    """Mean and max joint distance (mm) of each fast runtime from torch fp32 eager, same prompts and noise."""
+    from lsgan.deploy.int8 import reference_requests
+    from lsgan.deploy.onnx_export import export_onnx
+    from lsgan.deploy.runtime import load
+    from lsgan.generate import generate
+
+    folder = workdir / "quality-onnx"
+    manifest = export_onnx(gan_run, folder, vae=vae_run, int8=True).manifest
+    requests = reference_requests(manifest, count)
+    # the noise lsgan.generate draws for seed 0, given to onnxruntime too
+    noise = torch.randn(count, int(manifest["noise_dim"]), generator=torch.Generator().manual_seed(0)).numpy()
+    vae = vae_run or manifest["sources"]["vae"]["path"]
+    joints = {name: [m.joints for m in run(gan_run, vae, requests, seed=0, device="cpu").motions]
+              for name, run in (("torch fp32 eager", generate), ("torch bf16 autocast", _autocast_bf16(generate)))}
+    for variant in ("fp32", "int8"):
+        joints[f"onnxruntime {variant}"] = [m.joints for m in
+                                            load(folder, variant=variant).generate(requests, noise=noise).motions]
+    base = joints.pop("torch fp32 eager")
+    out = {}
+    for name, js in joints.items():
+        d = np.concatenate([np.linalg.norm(a - b, axis=-1).ravel() for a, b in zip(base, js)]) * 1000.0
+        out[name] = {"mean_mm": float(d.mean()), "max_mm": float(d.max()), "motions": count}
+        print(f"[quality] {name:22s} vs torch fp32: mean {d.mean():.3f} mm, max {d.max():.3f} mm over {count} "
+              "motions", file=sys.stderr)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=10, help="GAN steps per design")
     ap.add_argument("--batch", type=int, default=64, help="GAN training batch size (paper: 64)")
     ap.add_argument("--frames", type=int, default=120, help="motion length for encoding and decoding (20 fps)")
+    ap.add_argument("--repeats-b1", type=int, default=50, help="timed runs per runtime at batch 1")
+    ap.add_argument("--repeats-b256", type=int, default=5, help="timed runs per runtime at batch 256")
+    ap.add_argument("--skip-training", action="store_true", help="only the generation figures")
+    ap.add_argument("--skip-generation", action="store_true", help="only the training figures")
+    ap.add_argument("--quality-run", help="a trained text GAN run: joint deviation of each runtime from torch fp32")
+    ap.add_argument("--quality-vae", help="its VAE (default: the one its latent cache records)")
     ap.add_argument("--json", help="also write the figures here")
     args = ap.parse_args()
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
-    report = {"machine": f"{platform.machine()} python {platform.python_version()} torch {torch.__version__}",
-              "threads": torch.get_num_threads(), "results": []}
-    for dev in devices:
+    report = {"machine": f"{platform.machine()} python {platform.python_version()} torch {torch.__version__}, "
+                         f"{os.cpu_count()} cpus", "threads": threads_said(), "load_avg_at_start": os.getloadavg(),
+              "results": []}
+    with tempfile.TemporaryDirectory(prefix="lsgan-bench-") as tmp:
+        if not args.skip_generation:
+            report["generation"] = bench_generation(args.frames, {1: args.repeats_b1, 256: args.repeats_b256},
+                                                    Path(tmp))
+        if args.quality_run:
+            report["quality"] = joint_deviation(Path(args.quality_run),
+                                                Path(args.quality_vae) if args.quality_vae else None, Path(tmp))
+    for dev in ([] if args.skip_training else devices):
         train = bench_training(dev, args.steps, args.batch, args.frames)
         print(f"[{dev}] GAN training: cached {train['cached_steps_per_s']:.2f} steps/s, naive "
               f"{train['naive_vae_every_batch_steps_per_s']:.2f} steps/s -> x{train['speedup_cached_vs_naive']:.1f}",

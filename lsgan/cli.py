@@ -82,7 +82,10 @@ class LsganGroup(click.Group):
 @click.group(cls=LsganGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, prog_name="lsgan")
 @click.option("--debug", is_flag=True, help="Show Python tracebacks on errors (also LSGAN_DEBUG=1).")
-def main(debug: bool) -> None:
+@click.option("--threads", type=click.IntRange(1), default=None,
+              help="Fix the CPU threads of torch and onnxruntime (also LSGAN_THREADS=N). Default: lsgan picks them "
+                   "per job and lowers them while other processes keep cores busy.")
+def main(debug: bool, threads: int | None) -> None:
     """lsgan: text- and action-to-motion synthesis with a GAN in the latent space of a motion VAE.
 
     \b
@@ -99,11 +102,14 @@ def main(debug: bool) -> None:
       lsgan generate --gan runs/gan --vae runs/vae --text "a person walks forward" -o out/
     \b
     Errors are one line on stderr (`error: FILE: problem`) with exit code 1 (2 for a wrong option, 130 after
-    Ctrl-C); `lsgan --debug COMMAND` (or LSGAN_DEBUG=1) shows the traceback. No command replaces a file it
+    Ctrl-C); `lsgan --debug COMMAND` (or LSGAN_DEBUG=1) shows the traceback. CPU threads: lsgan picks them per
+    job and uses fewer while other processes keep cores busy; `lsgan --threads N COMMAND` fixes them. No command replaces a file it
     did not write: an existing output needs --force, which replaces only lsgan's own files.
     """
     if debug:
         os.environ["LSGAN_DEBUG"] = "1"
+    if threads:
+        os.environ["LSGAN_THREADS"] = str(threads)
 
 
 @main.command(epilog="""\b
@@ -116,7 +122,7 @@ Examples:
   lsgan demo -o my_demo
   LSGAN_DEMO_SCALE=0.05 lsgan demo -o tiny    # about a minute: steps, clips and evaluation draws x 0.05
   lsgan demo --scale 0.2 --fresh              # start over in demo_out at another scale
-  lsgan demo --threads 1                      # on a machine that is busy with other work
+  lsgan demo --threads 2                      # a fixed thread count (default: lsgan adapts to the load)
 """)
 @click.option("-o", "--output", default="demo_out", show_default=True, type=click.Path(file_okay=False),
               help="Folder for everything the demo makes; run again to continue or reuse it.")
@@ -126,8 +132,8 @@ Examples:
                    "variable LSGAN_DEMO_SCALE, else 1.")
 @click.option("--fresh", is_flag=True, help="Remove an earlier demo in the output folder first (its own files only).")
 @click.option("--threads", type=click.IntRange(1), default=None,
-              help="Torch CPU threads (default: one per core, or OMP_NUM_THREADS). Use 1 when other work is "
-                   "running on the machine: competing threads can make training many times slower.")
+              help="Fix torch's CPU threads (as `lsgan --threads N`). Default: lsgan picks them per stage and "
+                   "lowers them while other processes keep cores busy.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
 def demo(output, scale, fresh, threads, device) -> None:
     """Run the whole pipeline on built-in synthetic data: preprocess, train a VAE, a deep-wgan-gp GAN and an
@@ -549,10 +555,18 @@ Examples:
   lsgan generate --gan runs/gan --vae runs/vae --prompts prompts.txt -o out/     # lines: 'prompt' or 'prompt#frames'
   lsgan generate --gan runs/act-gan --vae runs/vae --action jump --num 8 -o out/
   lsgan generate --gan runs/diffusion --vae runs/vae --text "a person waves" --steps 50 --guidance 7.5 -o out/
+  lsgan generate --runtime onnx --gan gan-onnx --text "a person walks forward" -o out/   # export-model's folder
+  lsgan --threads 1 generate --runtime onnx --int8 --gan gan-onnx --prompts prompts.txt -o out/
 """)
 @click.option("--gan", required=True, type=click.Path(exists=True),
-              help="Generator checkpoint: GAN or diffusion (run or checkpoint folder).")
-@click.option("--vae", required=True, type=click.Path(exists=True), help="The VAE whose latents the generator learned.")
+              help="Generator checkpoint: GAN or diffusion (run or checkpoint folder); with --runtime onnx, the "
+                   "folder `lsgan export-model --onnx` wrote.")
+@click.option("--vae", type=click.Path(exists=True),
+              help="The VAE whose latents the generator learned (--runtime torch; an ONNX export holds its decoder).")
+@click.option("--runtime", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
+              help="torch: the checkpoints; onnx: an exported folder, run by onnxruntime without torch (its noise is "
+                   "drawn with numpy, so the same --seed gives other motions than torch's).")
+@click.option("--int8", is_flag=True, help="--runtime onnx: the int8 graphs (an export made with --int8).")
 @click.option("--text", "texts", multiple=True, help="A prompt (repeat for several).")
 @click.option("--prompts", type=click.Path(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
 @click.option("--action", "actions", multiple=True, help="An action label, for action-conditioned models (repeatable).")
@@ -568,27 +582,36 @@ Examples:
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
               "wrote there (never other files).")
-def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path, batch_size, device, steps,
-             guidance, output, force) -> None:
+def generate(gan, vae, runtime, int8, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path,
+             batch_size, device, steps, guidance, output, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
-    from lsgan.generate import Request, claim_generation, read_prompts, write_generation
-    from lsgan.generate import generate as run
+    from lsgan.generation import Request, claim_generation, read_prompts, write_generation
 
     if frames is not None and seconds is not None:
         raise click.UsageError("give --frames or --seconds, not both")
     n_frames = frames if frames is not None else (round(seconds * 20) if seconds is not None else 120)
     if n_frames < 4:
         raise click.UsageError("a motion needs at least 4 frames")
+    _check_runtime_options(runtime, vae=vae, int8=int8, text_encoder_path=text_encoder_path, device=device,
+                           steps=steps, guidance=guidance)
     requests = [Request(text=t, frames=n_frames) for t in texts] + [Request(action=a, frames=n_frames) for a in actions]
     if prompts:
         requests += read_prompts(prompts, n_frames)
     if not requests:
         raise click.UsageError("give --text, --prompts or --action")
     try:
-        claim_generation(output, gan, vae, *([prompts] if prompts else []), force=force)
-        result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
-                     batch_size=batch_size, steps=steps, guidance=guidance)
+        claim_generation(output, gan, *([vae] if vae else []), *([prompts] if prompts else []), force=force)
+        if runtime == "onnx":
+            from lsgan.deploy.runtime import generate_onnx
+
+            result = generate_onnx(gan, requests, num=num, seed=seed, variant="int8" if int8 else "fp32",
+                                   batch_size=batch_size)
+        else:
+            from lsgan.generate import generate as run
+
+            result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
+                         batch_size=batch_size, steps=steps, guidance=guidance)
         if result.kind == "gan" and (steps is not None or guidance is not None):
             click.echo(f"note: --steps/--guidance ignored: {gan} is a GAN (they set a diffusion model's sampling)",
                        err=True)
@@ -599,6 +622,65 @@ def generate(gan, vae, texts, prompts, actions, frames, seconds, num, seed, text
     click.echo(f"{len(result.motions)} motions in {output} ({manifest.name}); {result.ms_per_motion:.2f} ms per motion "
                f"(text {t['text_encoding'] * 1e3:.1f} ms, generator {t['generator'] * 1e3:.1f} ms, "
                f"VAE decoder {t['vae_decoding'] * 1e3:.1f} ms in all)", err=True)
+
+
+def _check_runtime_options(runtime: str, *, vae, int8, text_encoder_path, device, steps, guidance) -> None:
+    """Options that belong to the other runtime are usage errors, not silently ignored."""
+    if runtime == "torch":
+        if vae is None:
+            raise click.UsageError("--vae is required (with --runtime onnx, --gan names an exported folder instead)")
+        if int8:
+            raise click.UsageError("--int8 goes with --runtime onnx")
+        return
+    given = [name for name, value in (("--vae", vae), ("--text-encoder-path", text_encoder_path), ("--steps", steps),
+                                      ("--guidance", guidance)) if value is not None]
+    if device not in ("auto", "cpu"):
+        given.append("--device")
+    if given:
+        raise click.UsageError(f"{', '.join(given)}: not used with --runtime onnx (the exported folder holds the "
+                               "decoder and text encoder; it runs on the CPU)")
+
+
+@main.command("export-model", epilog="""\b
+Examples:
+  lsgan export-model runs/gan -o gan-onnx --onnx               # text encoder, generator, decoder + manifest.json
+  lsgan export-model runs/gan -o gan-onnx --onnx --int8 --force   # also int8 graphs, with their joint error
+  lsgan export-model runs/act-gan --vae runs/vae -o act-onnx --onnx
+  lsgan generate --runtime onnx --gan gan-onnx --text "a person walks forward" -o out/
+\b
+Calling the graphs from Python, C++ or C# without lsgan: docs/deploy.md.
+""")
+@click.argument("run", type=click.Path(exists=True, file_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(), help="Folder for the graphs, tokenizer and manifest.json.")
+@click.option("--onnx", "as_onnx", is_flag=True, help="ONNX graphs (the one format so far).")
+@click.option("--int8", is_flag=True, help="Also write int8 graphs of the text encoder and decoder (dynamic "
+              "quantisation) and measure their joint error against fp32 on 100 fixed motions.")
+@click.option("--vae", type=click.Path(exists=True), help="The GAN's VAE (default: the one its latent cache was "
+              "encoded with, as its config.json records).")
+@click.option("--text-encoder-path", type=click.Path(exists=True, file_okay=False),
+              help="Local MiniLM folder, when the GAN was trained with one (default: the packaged weights).")
+@click.option("--opset", default=18, show_default=True, type=click.IntRange(18), help="ONNX opset (18 or later).")
+@click.option("--force", is_flag=True, help="Write into an existing OUTPUT, replacing only files lsgan wrote there.")
+def export_model(run, output, as_onnx, int8, vae, text_encoder_path, opset, force) -> None:
+    """Export a latent GAN with its VAE decoder and text encoder as ONNX graphs that run without torch
+    (onnxruntime; `lsgan generate --runtime onnx`), with a manifest.json saying how to feed them."""
+    from lsgan.deploy.onnx_export import export_onnx
+    from lsgan.models.text import TextEncoderUnavailable
+
+    if not as_onnx:
+        raise click.UsageError("choose a format: --onnx (the one format so far)")
+    try:
+        result = export_onnx(run, output, vae=vae, int8=int8, force=force, text_encoder_path=text_encoder_path,
+                             opset=opset, progress=lambda m: click.echo(m, err=True))
+    except (ValueError, FileNotFoundError, TextEncoderUnavailable) as e:
+        _fail(str(e))
+    m = result.manifest
+    click.echo(f"wrote {len(m['files']) + 1} files to {result.folder} in {result.seconds:.1f} s "
+               f"({m['condition']}-conditioned; {', '.join(m['variants'])})", err=True)
+    error = m["variants"].get("int8", {}).get("joint_error_mm")
+    if error:
+        click.echo(f"int8 joint error against fp32 ({error['motions']} motions): mean {error['mean']:.2f} mm, "
+                   f"max {error['max']:.2f} mm", err=True)
 
 
 @main.command(epilog="""\b

@@ -287,25 +287,30 @@ def run_demo(
     scale: step counts, clips and evaluation draws x scale (default ``$LSGAN_DEMO_SCALE``, else 1).
     progress: tqdm bars of each stage on stderr. log: receives one line per stage (default: stderr when
     ``progress``). fresh: remove an earlier demo in ``out`` first (only the demo's own files).
-    threads: torch threads for the run (default: torch's own, i.e. ``$OMP_NUM_THREADS`` or one per core; on a
-    machine where other work is running, 1 avoids threads waiting on each other, which can be many times slower).
+    threads: a fixed torch thread count for the run (``LSGAN_THREADS``); default: lsgan's policy
+    (:mod:`lsgan.threads`), which picks them per stage and lowers them while other processes keep cores busy.
     Raises DemoInterrupted on Ctrl-C (run again to continue), ValueError for a folder made at other settings.
     """
-    import torch
+    from lsgan.threads import ENV
 
     if threads is not None and threads < 1:
         raise ValueError(f"threads must be >= 1, not {threads}")
-    before = torch.get_num_threads()
+    before = os.environ.get(ENV)
     if threads:
-        torch.set_num_threads(threads)
+        os.environ[ENV] = str(threads)
     try:
         return _run(out, scale=scale, progress=progress, log=log, device=device, fresh=fresh, recipe=recipe)
     finally:
-        torch.set_num_threads(before)
+        if before is None:
+            os.environ.pop(ENV, None)
+        else:
+            os.environ[ENV] = before
 
 
 def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
     import torch
+
+    from lsgan.threads import threads_said
     from tqdm import tqdm
 
     settings = demo_settings(scale, recipe)
@@ -322,7 +327,7 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
     t_run = time.perf_counter()
     say(f"lsgan demo -> {out} (scale {settings.scale:g}: {settings.clips} synthetic clips, VAE {settings.vae_steps} / "
         f"GAN {settings.gan_steps} / evaluator {settings.evaluator_steps} steps; torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads)")
+        f"threads {threads_said()})")
 
     def stage(index: int, name: str, output: Path | str, describe: str, body: Callable[[], tuple[str, dict]]) -> dict:
         done = stages.done(name)
@@ -538,7 +543,7 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
         "stages": [asdict(s) | {"info": (stages.marker(s.name) or {}).get("info", {})} for s in records],
         "stages_seconds": round(sum(s.seconds for s in records), 2),
         "this_run_seconds": round(result.seconds, 2),
-        "platform": {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+        "platform": {"torch": torch.__version__, "threads": threads_said(), "cpus": os.cpu_count(),
                      "loadavg": _loadavg()},
     }
     with atomic_file(result.summary, "w", encoding="utf-8") as fh:

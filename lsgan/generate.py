@@ -8,64 +8,23 @@ halves of guidance: the time from conditions to latents either way) and ``vae_de
 """
 from __future__ import annotations
 
-import json
 import os
-import re
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from lsgan import outputs
 from lsgan.data.features import recover_from_ric
-from lsgan.data.skeleton import FPS
-from lsgan.io import atomic_file
-
-
-@dataclass
-class Request:
-    """One condition to generate for: a prompt or an action label, and a length in frames (20 fps)."""
-
-    text: str | None = None
-    action: str | None = None
-    frames: int = 120
-
-
-@dataclass
-class Motion:
-    request: Request
-    sample: int
-    features: np.ndarray  # (T, 263), de-normalised
-    joints: np.ndarray  # (T, 22, 3)
-
-
-@dataclass
-class Generation:
-    motions: list[Motion]
-    timings_s: dict[str, float] = field(default_factory=dict)
-    gan: str = ""  # the generator checkpoint (GAN or diffusion; the name is kept for compatibility)
-    vae: str = ""
-    seed: int = 0
-    kind: str = "gan"  # "gan" or "diffusion"
-    sampling: dict = field(default_factory=dict)  # diffusion: {"steps", "guidance", "eta"}; GAN: {}
-
-    @property
-    def ms_per_motion(self) -> float:
-        return 1000.0 * sum(self.timings_s.values()) / max(len(self.motions), 1)
-
-
-def read_prompts(path: str | os.PathLike, default_frames: int) -> list[Request]:
-    """One prompt per line, optionally ``prompt#frames``; blank lines and lines starting with '//' are skipped."""
-    out = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        line = line.strip()
-        if not line or line.startswith("//"):
-            continue
-        m = re.fullmatch(r"(.*)#\s*(\d+)\s*", line)
-        out.append(Request(text=m.group(1).strip(), frames=int(m.group(2))) if m else Request(text=line, frames=default_frames))
-    return out
+# re-exported: the structures and the writer, torch-free in lsgan.generation, shared with the ONNX runtime
+from lsgan.generation import (  # noqa: F401
+    Generation,
+    Motion,
+    Request,
+    claim_generation,
+    read_prompts,
+    write_generation,
+)
+from lsgan.threads import LARGE_BATCH, ThreadPolicy
 
 
 def _sync(device: torch.device) -> None:
@@ -221,22 +180,14 @@ def generate(
             f"use the VAE its cache was encoded with (its path is in the {gmeta['kind']}'s config.json)"
         )
     timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
-    z, sampling = _latents(model, gmeta, gan, requests, dev, num=num, seed=seed, text_encoder_path=text_encoder_path,
-                           batch_size=batch_size, steps=steps, guidance=guidance, eta=eta, timings=timings)
-    frames = [r.frames for r in requests for _ in range(num)]
-    feats: list[np.ndarray] = [None] * len(frames)  # type: ignore[list-item]
-    with torch.no_grad():
-        t0 = time.perf_counter()
-        order = sorted(range(len(frames)), key=lambda i: frames[i])
-        for b in range(0, len(order), batch_size):
-            idx = order[b : b + batch_size]
-            lengths = torch.tensor([frames[i] for i in idx], device=dev)
-            mask = torch.arange(int(lengths.max()), device=dev)[None] < lengths[:, None]
-            x = decoder.decode(z[idx], mask).float().cpu().numpy()
-            for j, i in enumerate(idx):
-                feats[i] = x[j, : frames[i]] * vmeta["std"] + vmeta["mean"]
-        _sync(dev)
-        timings["vae_decoding"] = time.perf_counter() - t0
+    threads = ThreadPolicy(large=min(batch_size, len(requests) * num) >= LARGE_BATCH,
+                           threads=None if dev.type == "cpu" else torch.get_num_threads())
+    with threads:
+        z, sampling = _latents(model, gmeta, gan, requests, dev, num=num, seed=seed,
+                               text_encoder_path=text_encoder_path, batch_size=batch_size, steps=steps,
+                               guidance=guidance, eta=eta, timings=timings)
+        feats = _decode(decoder, vmeta, z, [r.frames for r in requests for _ in range(num)], dev, batch_size,
+                        threads, timings)
     motions = [
         Motion(request=requests[k // num], sample=k % num, features=f.astype(np.float32),
                joints=recover_from_ric(f.astype(np.float32)))
@@ -246,48 +197,21 @@ def generate(
                       sampling=sampling)
 
 
-def _slug(text: str, limit: int = 40) -> str:
-    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:limit] or "motion"
-
-
-def write_generation(result: Generation, out: str | os.PathLike, *, force: bool = False) -> Path:
-    """features ``.npy``, joints ``.npy`` (T,22,3) per motion and ``manifest.json``; returns the manifest path.
-
-    An existing ``out`` is refused unless ``force``, which first clears the files an earlier lsgan run wrote
-    there (and only those).
-    """
-    from lsgan.models.checkpoint import resolve, weights_hash
-
-    out = claim_generation(out, result.gan, result.vae, force=force)
-    out.mkdir(parents=True, exist_ok=True)
-    entries = []
-    for i, m in enumerate(result.motions):
-        stem = f"{i:03d}_{_slug(m.request.text or m.request.action or 'motion')}"
-        for suffix, array in (("features", m.features), ("joints", m.joints)):
-            with atomic_file(outputs.claim_file(out / f"{stem}_{suffix}.npy", force=True)) as fh:
-                np.save(fh, array)
-        entries.append({
-            "index": i, "text": m.request.text, "action": m.request.action, "frames": int(len(m.features)),
-            "seconds": len(m.features) / FPS, "sample": m.sample, "features": f"{stem}_features.npy",
-            "joints": f"{stem}_joints.npy",
-        })
-    generator = {"path": str(resolve(result.gan)), "sha256": weights_hash(result.gan)}
-    manifest = {
-        "seed": result.seed,
-        "fps": FPS,
-        "generator": {"kind": result.kind, **generator, **result.sampling},
-        "gan": generator,  # the generator checkpoint under its historical key, whatever its kind
-        "vae": {"path": str(resolve(result.vae)), "sha256": weights_hash(result.vae)},
-        "timings_s": result.timings_s,
-        "ms_per_motion": result.ms_per_motion,
-        "motions": entries,
-    }
-    path = outputs.claim_file(out / "manifest.json", force=True)
-    with atomic_file(path, "w", encoding="utf-8") as fh:
-        json.dump(manifest, fh, indent=1)
-    return path
-
-
-def claim_generation(out: str | os.PathLike, *inputs: str | os.PathLike, force: bool = False) -> Path:
-    """Check (before generating) that ``out`` may be written: see :func:`write_generation`."""
-    return outputs.claim_folder(out, force=force, inputs=inputs)
+def _decode(decoder, vmeta: dict, z: torch.Tensor, frames: list[int], dev: torch.device, batch_size: int,
+            threads: ThreadPolicy, timings: dict[str, float]) -> list[np.ndarray]:
+    """De-normalised features of each latent at its length, decoded in batches of similar length."""
+    feats: list[np.ndarray] = [None] * len(frames)  # type: ignore[list-item]
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        order = sorted(range(len(frames)), key=lambda i: frames[i])
+        for b in range(0, len(order), batch_size):
+            threads.update()
+            idx = order[b : b + batch_size]
+            lengths = torch.tensor([frames[i] for i in idx], device=dev)
+            mask = torch.arange(int(lengths.max()), device=dev)[None] < lengths[:, None]
+            x = decoder.decode(z[idx], mask).float().cpu().numpy()
+            for j, i in enumerate(idx):
+                feats[i] = x[j, : frames[i]] * vmeta["std"] + vmeta["mean"]
+        _sync(dev)
+        timings["vae_decoding"] = time.perf_counter() - t0
+    return feats

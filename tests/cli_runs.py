@@ -1,6 +1,7 @@
 """Running the real ``lsgan`` command in a subprocess, and a tiny recipe for a whole pipeline in seconds."""
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import sys
@@ -24,3 +25,26 @@ def lsgan(*args, cwd: Path, env: dict | None = None, fault: str | None = None) -
         full_env["LSGAN_FAULT"] = fault
     return subprocess.run([sys.executable, "-m", "lsgan.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, env=full_env, timeout=600)
+
+
+TINY_PIPELINE = [
+    ("preprocess", "--source", "synthetic", "--num-clips", 40, "-o", "synth.h5"),
+    ("train-vae", "--data", "synth.h5", "--recipe", "tiny.yaml", "--out", "vae"),
+    ("encode-latents", "--data", "synth.h5", "--vae", "vae", "-o", "cache.h5"),
+    ("train-gan", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--out", "gan"),
+]
+
+
+def tiny_pipeline(d: Path, *more: tuple) -> Path:
+    """TINY_RECIPE's pipeline in ``d`` (tiny.yaml, synth.h5, vae/, cache.h5, gan/), then the steps ``more``."""
+    (d / "tiny.yaml").write_text(TINY_RECIPE)
+    for step in [*TINY_PIPELINE, *more]:
+        out = lsgan(*step, cwd=d)
+        assert out.returncode == 0, f"{step[0]} failed:\n{out.stderr[-3000:]}"
+    return d
+
+
+def snapshot(*folders: Path) -> dict[Path, str]:
+    """SHA-256 of every file under the folders."""
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest()
+            for f in folders for p in sorted(f.rglob("*")) if p.is_file()}

@@ -36,10 +36,11 @@ def cmu_dir() -> Path:
 
 
 @pytest.fixture()
-def one_thread():
-    """Run torch on one thread: tiny models gain nothing from intra-op threads, and on a busy 2-core
-    machine two threads can spin-wait each other and run many times slower."""
+def one_thread(monkeypatch):
+    """Run torch on one thread, in this process and in lsgan's (LSGAN_THREADS): tiny models gain nothing from
+    intra-op threads."""
     threads = torch.get_num_threads()
+    monkeypatch.setenv("LSGAN_THREADS", "1")
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)

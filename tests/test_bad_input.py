@@ -8,7 +8,6 @@ or removed (in the row's folder and in the shared tiny pipeline).
 from __future__ import annotations
 
 import gzip
-import hashlib
 import io
 import json
 import os
@@ -21,7 +20,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from cli_runs import TINY_RECIPE, lsgan
+from cli_runs import lsgan, snapshot, tiny_pipeline
 
 from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.data.synthetic import generate as synthetic_clips
@@ -32,24 +31,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def pipe(tmp_path_factory) -> Path:
     """A tiny real pipeline: shard, VAE, latent cache, GAN and one generate folder (read-only for the rows)."""
-    d = tmp_path_factory.mktemp("pipe")
-    (d / "tiny.yaml").write_text(TINY_RECIPE)
-    for step in [
-        ("preprocess", "--source", "synthetic", "--num-clips", 40, "-o", "synth.h5"),
-        ("train-vae", "--data", "synth.h5", "--recipe", "tiny.yaml", "--out", "vae"),
-        ("encode-latents", "--data", "synth.h5", "--vae", "vae", "-o", "cache.h5"),
-        ("train-gan", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--out", "gan"),
-        ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--frames", 40, "-o", "gen"),
-    ]:
-        out = lsgan(*step, cwd=d)
-        assert out.returncode == 0, f"{step[0]} failed:\n{out.stderr[-3000:]}"
-    return d
-
-
-def snapshot(*folders: Path) -> dict[Path, str]:
-    """SHA-256 of every file under the folders."""
-    return {p: hashlib.sha256(p.read_bytes()).hexdigest()
-            for f in folders for p in sorted(f.rglob("*")) if p.is_file()}
+    return tiny_pipeline(tmp_path_factory.mktemp("pipe"),
+                         ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--frames", 40,
+                          "-o", "gen"))
 
 
 # ---- inputs -------------------------------------------------------------------------------------------------
@@ -196,6 +180,13 @@ def existing_lsgan_shard(w: Path, pipe: Path) -> list:
 def text_file(w: Path, name: str = "notes.txt") -> Path:
     (w / name).write_text("not what lsgan expects")
     return w / name
+
+
+def user_folder(w: Path, name: str = "notes.txt") -> Path:
+    """A folder of the user's, holding one file of theirs."""
+    (w / "mine").mkdir()
+    (w / "mine" / name).write_text("the user's own file")
+    return w / "mine"
 
 
 def hdf5_not_shard(w: Path) -> Path:
@@ -355,6 +346,20 @@ CASES = [
          "m_joints.npy"),
     Case("export-body-model-missing", lambda w, p: ["export", "--glb", p / "gen", "--body-model", w / "nomodels",
                                                     "-o", w / "body"], 1, "does not exist"),
+    # export-model (ONNX); the rows of generate --runtime onnx, which need an export, are in test_deploy.py
+    Case("export-model-run-missing", lambda w, p: ["export-model", w / "nope", "-o", w / "x", "--onnx"], 2,
+         "does not exist"),
+    Case("export-model-not-a-gan", lambda w, p: ["export-model", p / "vae", "-o", w / "x", "--onnx"], 1, "not a GAN"),
+    Case("export-model-no-format", lambda w, p: ["export-model", p / "gan", "-o", w / "x"], 2, "--onnx"),
+    Case("export-model-output-user-file", lambda w, p: ["export-model", p / "gan", "-o", text_file(w), "--onnx"], 1,
+         "not a folder"),
+    Case("export-model-output-user-folder", lambda w, p: ["export-model", p / "gan", "-o", user_folder(w), "--onnx"],
+         1, "pass --force"),
+    Case("export-model-output-user-manifest-force", lambda w, p: ["export-model", p / "gan", "-o",
+                                                                  user_folder(w, "manifest.json"), "--onnx",
+                                                                  "--force"], 1, "not a file lsgan wrote"),
+    Case("export-model-output-inside-run", lambda w, p: ["export-model", p / "gan", "-o", p / "gan" / "onnx",
+                                                         "--onnx"], 1, "inside the input folder"),
     # evaluate, bench, inspect
     Case("evaluate-output-user-file", evaluate_into_user_table, 1, "pass --force"),
     Case("bench-json-user-file", lambda w, p: ["bench", "--json", text_file(w, "b.json")], 1, "pass --force"),

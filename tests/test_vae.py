@@ -281,3 +281,20 @@ def test_a_run_saved_before_the_shared_loop_resumes_exactly(shard, tmp_path):
     assert resumed == straight and resumed["best_val_mpjpe_m"] <= best
     wa, wb = load_weights(tmp_path / "old", prefer="last")[0], load_weights(tmp_path / "new", prefer="last")[0]
     assert all(torch.equal(wa[k], wb[k]) for k in wb)
+
+
+def test_a_run_keeps_its_cpu_threads_across_resumes(shard, tmp_path, monkeypatch):
+    """The count a run starts with is recorded in last/state.pt and reused by a resume, whatever the load then;
+    a count fixed by the user on resume wins, and train.log says the steps now differ in rounding."""
+    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=2, val_every=2, ckpt_every=2, log_every=2, seed=3)
+    monkeypatch.setenv("LSGAN_THREADS", "2")
+    train_vae(shard, tmp_path, model=TINY, train=cfg, device="cpu", progress=False)
+    assert load_state(tmp_path)["threads"] == 2
+    monkeypatch.delenv("LSGAN_THREADS")
+    train_vae(shard, tmp_path, model=TINY, train=replace(cfg, max_steps=4), device="cpu", resume=True, progress=False)
+    assert load_state(tmp_path)["threads"] == 2
+    monkeypatch.setenv("LSGAN_THREADS", "1")
+    train_vae(shard, tmp_path, model=TINY, train=replace(cfg, max_steps=6), device="cpu", resume=True, progress=False)
+    assert load_state(tmp_path)["threads"] == 1
+    log = (tmp_path / "train.log").read_text()
+    assert log.count("CPU threads for this run") == 1 and "trained on 2 CPU threads and continues on 1" in log

@@ -19,6 +19,7 @@ Time per motion is measured end to end, as a user waits for it: text encoding wi
 (MiniLM; its embedding is zero-padded to a wider model's condition), then the generator or denoiser, then VAE
 decoding. It is taken at batch 1 and 256, per stage and in total, as the median of ``repeats`` runs after a
 warm-up. Models are paper-sized (``recipes/humanml3d.yaml``) with random weights unless checkpoints are given.
+:func:`time_per_motion` is the one timer of generation: ``benchmarks/models.py`` times every runtime with it.
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ from torch.utils.flop_counter import FlopCounterMode, sdpa_flop_count
 from lsgan.models.gan import GANConfig, LatentGAN
 from lsgan.models.text import CLIP_L14_TEXT, TextEncoder, clip_l14_text_tower
 from lsgan.models.vae import MotionVAE, VAEConfig
+from lsgan.threads import LARGE_BATCH, ThreadPolicy, threads_said
 
 CLIPS = 2048  # the paper's unit
 FLOP_BATCH = 32  # clips counted for a generator or denoiser
@@ -80,8 +82,12 @@ class BenchRow:
     ms_text_b256: float
     ms_generator_b256: float
     ms_decoder_b256: float
-    threads: int
+    threads: str  # "adaptive (up to N)" or "N (fixed)": lsgan's thread policy during the timing
     load_avg: float | None  # 1-minute load average when the row's timing began
+    ms_per_motion_b1_q25: float = 0.0  # quartiles of the total over the runs: the spread of the median
+    ms_per_motion_b1_q75: float = 0.0
+    ms_per_motion_b256_q25: float = 0.0
+    ms_per_motion_b256_q75: float = 0.0
 
 
 @dataclass
@@ -182,7 +188,7 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _prompts(batch: int) -> list[str]:
+def bench_prompts(batch: int) -> list[str]:
     return [f"a person walks forward and waves the {'left' if i % 2 else 'right'} hand {i} times"
             for i in range(batch)]
 
@@ -223,7 +229,7 @@ def text_cost(name: str, cond_dim: int) -> tuple[str, float]:
     if name == "minilm":
         enc = load_text_encoder("minilm")
         if enc.dim == cond_dim:
-            prompts = _prompts(PART_FLOP_BATCH)
+            prompts = bench_prompts(PART_FLOP_BATCH)
             flops = count_flops(lambda: enc.encode(prompts)) / len(prompts)
             return f"minilm, the timed prompts ({cond_dim}-d)", flops
     raise ValueError(f"bench cannot count the text encoder {name!r} for a {cond_dim}-wide condition "
@@ -254,31 +260,56 @@ def _fit(emb: torch.Tensor, dim: int) -> torch.Tensor:
     return emb[:, :dim]
 
 
-def time_per_motion(sampler: Sampler, vae: MotionVAE, encode: Callable[[list[str]], torch.Tensor],
-                    device: torch.device, *, batch: int, frames: int, repeats: int) -> dict[str, float]:
-    """Median wall time per motion (ms) at ``batch``: ``total`` and the stages ``text``, ``generator``,
-    ``decoder``."""
-    prompts = _prompts(batch)
-    mask = torch.ones(batch, frames, dtype=torch.bool, device=device)
+@dataclass
+class Pipeline:
+    """What is timed end to end, in three stages: ``encode(prompts) -> conditions``, ``sample(conditions) ->
+    latents``, ``decode(latents, frames) -> features``; ``sync`` waits for the device. Any runtime fits (torch eager,
+    onnxruntime, ...), so one timer serves ``lsgan bench`` and ``benchmarks/models.py``."""
+
+    encode: Callable[[list[str]], object]
+    sample: Callable[[object], object]
+    decode: Callable[[object, int], object]
+    sync: Callable[[], None] = lambda: None
+
+
+def torch_pipeline(sampler: Sampler, vae: MotionVAE, encode: Callable[[list[str]], torch.Tensor],
+                   device: torch.device) -> Pipeline:
+    """lsgan's torch path: the timed encoder's embeddings fitted to the sampler's width, its latents, the VAE."""
+
+    def decode(z: torch.Tensor, frames: int) -> torch.Tensor:
+        return vae.decode(z, torch.ones(z.shape[0], frames, dtype=torch.bool, device=device))
+
+    return Pipeline(lambda prompts: _fit(encode(prompts).to(device), sampler.cond_dim), sampler.sample, decode,
+                    lambda: _sync(device))
+
+
+def time_per_motion(pipeline: Pipeline, *, batch: int, frames: int, repeats: int) -> dict[str, float]:
+    """Wall time per motion (ms) at ``batch`` over ``repeats`` runs after a warm-up: the median of ``total`` and of
+    the stages ``text``, ``generator``, ``decoder``, and the quartiles ``total_q25`` / ``total_q75``. Threads follow
+    lsgan's policy (:class:`lsgan.threads.ThreadPolicy`), as in ``lsgan generate``."""
+    prompts = bench_prompts(batch)
     laps: dict[str, list[float]] = {"text": [], "generator": [], "decoder": [], "total": []}
-    with torch.no_grad():
+    with torch.no_grad(), ThreadPolicy(large=batch >= LARGE_BATCH) as threads:
         for r in range(repeats + 1):
-            _sync(device)
+            threads.update()
+            pipeline.sync()
             t = [time.perf_counter()]
-            cond = _fit(encode(prompts).to(device), sampler.cond_dim)
-            _sync(device)
+            cond = pipeline.encode(prompts)
+            pipeline.sync()
             t.append(time.perf_counter())
-            z = sampler.sample(cond)
-            _sync(device)
+            z = pipeline.sample(cond)
+            pipeline.sync()
             t.append(time.perf_counter())
-            vae.decode(z, mask)
-            _sync(device)
+            pipeline.decode(z, frames)
+            pipeline.sync()
             t.append(time.perf_counter())
-            if r:  # round 0 warms up
+            if r or not repeats:  # round 0 warms up
                 for i, stage in enumerate(("text", "generator", "decoder")):
                     laps[stage].append(1000.0 * (t[i + 1] - t[i]) / batch)
                 laps["total"].append(1000.0 * (t[3] - t[0]) / batch)
-    return {k: float(np.median(v)) for k, v in laps.items()}
+    out = {k: float(np.median(v)) for k, v in laps.items()}
+    out["total_q25"], out["total_q75"] = (float(q) for q in np.percentile(laps["total"], [25, 75]))
+    return out
 
 
 def _timed_name(enc: TextEncoder, cond_dim: int) -> str:
@@ -299,7 +330,7 @@ def _row(sampler: Sampler, cost: dict, times: dict[int, dict[str, float]], devic
         sampler.name, gen * CLIPS, b1["total"], b256["total"], str(device), sampler.kind, sampler.cond_dim,
         cost["text_name"], text, gen, dec, e2e, e2e * CLIPS, e2e + (text if sampler.null_text else 0.0), frames,
         timed, b1["text"], b1["generator"], b1["decoder"], b256["text"], b256["generator"], b256["decoder"],
-        torch.get_num_threads(), load_avg)
+        threads_said(), load_avg, b1["total_q25"], b1["total_q75"], b256["total_q25"], b256["total_q75"])
 
 
 def run_bench(samplers: list[Sampler], *, vae: MotionVAE | None = None, devices: list[str] | None = None,
@@ -323,8 +354,8 @@ def run_bench(samplers: list[Sampler], *, vae: MotionVAE | None = None, devices:
             if progress:
                 progress(f"[{device}] {sampler.name}")
             load_avg = _load_avg()
-            times = {b: time_per_motion(sampler, decoder, enc.encode, device, batch=b, frames=frames,
-                                        repeats=repeats) for b in BATCHES}
+            pipeline = torch_pipeline(sampler, decoder, enc.encode, device)
+            times = {b: time_per_motion(pipeline, batch=b, frames=frames, repeats=repeats) for b in BATCHES}
             rows.append(_row(sampler, cost, times, device, frames, _timed_name(enc, sampler.cond_dim), load_avg))
     return rows
 
@@ -354,7 +385,7 @@ def format_table(rows: list[BenchRow]) -> str:
         f"{r0.frames} frames; end to end = text + generator / denoiser + VAE decoder.",
         f"ms/motion: measured wall time per motion, total (text + generator / denoiser + decoder), text encoded "
         f"with {', '.join(dict.fromkeys(r.text_encoder_timed for r in rows))}, median of runs after a warm-up; "
-        f"torch threads {r0.threads}; "
+        f"quartiles of the runs in the JSON; torch threads: {r0.threads}; "
         f"1-minute load average at the start of the rows: {load}.",
         "",
         "| model | device | text encoder counted | text | generator / denoiser | VAE decoder | end to end | "

@@ -310,12 +310,16 @@ def _encode_windows(model, ds, spans, batch_size: int, dev, progress: bool) -> t
     import torch
     from tqdm import tqdm
 
+    from lsgan.threads import ThreadPolicy
+
     order = sorted(range(len(spans)), key=lambda i: spans[i][1] - spans[i][0])
     mu = np.zeros((len(spans), model.config.latent_dim), np.float32)
     logvar = np.zeros_like(mu)
     bar = tqdm(total=len(order), desc="encode latents", unit="window", disable=not progress or None, file=sys.stderr)
-    with torch.no_grad():
+    cpu_threads = None if torch.device(dev).type == "cpu" else torch.get_num_threads()
+    with torch.no_grad(), ThreadPolicy(tune=True, threads=cpu_threads) as threads:
         for b in range(0, len(order), batch_size):
+            threads.update()
             idx = order[b : b + batch_size]
             xs = [torch.from_numpy((ds._shard(ds.windows[i].shard).features(ds.windows[i].clip, *spans[i])
                                     - ds.mean) / ds.std) for i in idx]

@@ -245,6 +245,7 @@ class MiniLMEncoder(TextEncoder):
         self.model.load_state_dict(state, strict=True)
         self.model.eval().requires_grad_(False)
         self.id, self.dim, self.device = id, cfg["hidden_size"], torch.device("cpu")
+        self.folder = folder  # the weights and tokenizer files (an ONNX export copies the vocabulary)
 
     def to(self, device: str | torch.device) -> MiniLMEncoder:
         self.device = torch.device(device)

@@ -14,7 +14,9 @@ metric that picks ``best/``. The loop owns the rest:
   num_workers=0); log rows written after that checkpoint are dropped;
 - the NaN stop: a non-finite step scalar (every process sees the same ones) or non-finite weights at a checkpoint
   raise TrainingDiverged, and the last good checkpoint stays;
-- DDP (rank 0 alone writes), bf16 autocast on CUDA, log.csv and TensorBoard (RunLog), train.log, the progress bar.
+- DDP (rank 0 alone writes), bf16 autocast on CUDA, log.csv and TensorBoard (RunLog), train.log, the progress bar;
+- the CPU threads: decided when the run starts (:func:`lsgan.threads.run_threads`: fewer when other processes keep
+  cores busy) and kept, resumes included, so that its numbers never depend on the load.
 """
 from __future__ import annotations
 
@@ -39,6 +41,7 @@ from tqdm import tqdm
 
 from lsgan.data.dataset import LengthBucketSampler, collate
 from lsgan.models.checkpoint import CONFIG, load_state, load_weights, save_checkpoint
+from lsgan.threads import ThreadPolicy, run_threads, threads_said
 from lsgan.train.common import (
     Dist,
     RunLog,
@@ -269,6 +272,7 @@ class Progress:
     train_loss: float = math.nan  # the latest logged window mean of "loss"
     steps: int = 0  # steps taken in this call
     seconds: float = 0.0  # spent in them (not in validation or checkpoints)
+    threads: int = 0  # the run's CPU threads, kept for its resumes (0: not decided yet, or a GPU run)
 
     @property
     def best_value(self) -> float | None:
@@ -295,31 +299,47 @@ def fit(env: Env, t: Trainer, s: Schedule, previous: Previous | None = None, int
     sums: dict[str, float] = {}
     count, seconds = 0, 0.0
     t.model.train()
-    while p.step < s.max_steps:
-        tic = time.perf_counter()
-        scalars = _step(env, t, p.step)
-        p.step, p.steps = p.step + 1, p.steps + 1
-        took = time.perf_counter() - tic
-        p.seconds, seconds, count = p.seconds + took, seconds + took, count + 1
-        sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
-        bar.update(1)
-        row: dict[str, float] = {}
-        if s.due(p.step, s.log_every):
-            means = {k: v / count for k, v in sums.items()}
-            bar.set_postfix({k: f"{v:.3g}" for k, v in means.items()}, refresh=False)
-            row = _train_row(t, p, means, seconds / count)
-            sums, count, seconds = {}, 0, 0.0
-        if s.due(p.step, s.val_every):
-            row.update(_validate(env, t, p, track_best=True))
-        if row:
-            log.write(p.step, **row)
-        if s.due(p.step, s.ckpt_every):
-            _checkpoint(env, t, p, "last", with_state=True)
+    with ThreadPolicy(threads=_run_threads(env, p)):
+        while p.step < s.max_steps:
+            tic = time.perf_counter()
+            scalars = _step(env, t, p.step)
+            p.step, p.steps = p.step + 1, p.steps + 1
+            took = time.perf_counter() - tic
+            p.seconds, seconds, count = p.seconds + took, seconds + took, count + 1
+            sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
+            bar.update(1)
+            row: dict[str, float] = {}
+            if s.due(p.step, s.log_every):
+                means = {k: v / count for k, v in sums.items()}
+                bar.set_postfix({k: f"{v:.3g}" for k, v in means.items()}, refresh=False)
+                row = _train_row(t, p, means, seconds / count)
+                sums, count, seconds = {}, 0, 0.0
+            if s.due(p.step, s.val_every):
+                row.update(_validate(env, t, p, track_best=True))
+            if row:
+                log.write(p.step, **row)
+            if s.due(p.step, s.ckpt_every):
+                _checkpoint(env, t, p, "last", with_state=True)
     bar.close()
     log.close()
     if env.is_main and not (env.out / "best" / CONFIG).exists():  # nothing scored: the last weights stand in
         _checkpoint(env, t, p, "best", with_state=False)
     return p
+
+
+def _run_threads(env: Env, p: Progress) -> int:
+    """The run's CPU threads (:func:`lsgan.threads.run_threads`), recorded in ``p`` for its checkpoints; on a GPU
+    the CPU only feeds it and torch's count stays."""
+    if env.device.type != "cpu":
+        return torch.get_num_threads()
+    count = run_threads(p.threads)
+    if p.threads and count != p.threads:
+        env.say(f"this run trained on {p.threads} CPU threads and continues on {count} (fixed now): the steps "
+                "from here differ from an uninterrupted run in rounding")
+    elif not p.threads:
+        env.say(f"{count} CPU threads for this run ({threads_said()}; kept for its resumes)")
+    p.threads = count
+    return count
 
 
 def _step(env: Env, t: Trainer, step: int) -> dict[str, float]:
@@ -367,7 +387,7 @@ def _checkpoint(env: Env, t: Trainer, p: Progress, folder: str, with_state: bool
     state = None
     if with_state:
         state = {**{k: opt.state_dict() for k, opt in t.optimizers.items()}, **t.batches.state(), "step": p.step,
-                 "best": p.best, "val": p.val, "rng": rngs}
+                 "best": p.best, "val": p.val, "rng": rngs, "threads": p.threads}
     save_checkpoint(env.out / folder, model=t.model, kind=t.kind, config=t.config, step=p.step, extra=t.extra(p),
                     state=state)
 
@@ -388,6 +408,7 @@ def _restore(env: Env, t: Trainer, prev: Previous, p: Progress) -> None:
             group.update(settings)
     t.batches.load(prev.state)
     p.step, p.best, p.val = int(prev.state["step"]), float(prev.state["best"]), dict(prev.state["val"])
+    p.threads = int(prev.state.get("threads", 0))
     if env.is_main:
         _truncate_log(env.out / "log.csv", p.step)
     rngs = prev.state["rng"]

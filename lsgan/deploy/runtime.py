@@ -1,0 +1,210 @@
+"""Motions from an ONNX export with onnxruntime, tokenizers and numpy: no torch anywhere.
+
+The pipeline is the torch one (:func:`lsgan.generate.generate`) step by step: tokenise (the export's
+tokenizer.json: lowercase WordPiece, truncated at its max length, padded to the longest prompt of a batch),
+text encoder (mean-pooled, L2-normalised embedding), generator (noise ~ N(0, 1), standardised latent),
+de-standardise (latent * std + mean), decoder (with a mask of the real frames), de-normalise
+(features * Std + Mean), joints by the HumanML3D recovery. Only the noise differs: it is drawn with numpy from
+the seed, so for the same seed the ONNX and torch runtimes make different motions; pass the same ``noise`` to
+compare them.
+
+Sessions use ``threads`` intra-op threads (default: ``LSGAN_THREADS`` or ``OMP_NUM_THREADS`` when set, else the
+cores other processes leave free when the model is loaded) and no spin-waiting: spinning threads collapse when the
+machine is busy with other work.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from lsgan.data.features import recover_from_ric
+from lsgan.deploy.manifest import GRAPHS, read_manifest, variant_files, verify
+from lsgan.generation import Generation, Motion, Request
+from lsgan.threads import fixed_threads, start_threads
+
+
+def _ort():
+    try:
+        import onnxruntime
+    except ImportError as e:
+        raise RuntimeError("the ONNX runtime needs onnxruntime: pip install onnxruntime (or 'lsgan[onnx]')") from e
+    return onnxruntime
+
+
+def default_threads() -> int:
+    """A count the user fixed (``LSGAN_THREADS``, what ``lsgan --threads N`` sets, else ``OMP_NUM_THREADS``), else
+    the cores other processes leave free now (:mod:`lsgan.threads`, shared with the torch runtime)."""
+    return fixed_threads() or start_threads()
+
+
+def session_options(threads: int | None = None, spinning: bool = False):
+    """onnxruntime options: ``threads`` intra-op threads (default: :func:`default_threads`), no spin-waiting
+    unless asked."""
+    opts = _ort().SessionOptions()
+    opts.intra_op_num_threads = threads or default_threads()
+    opts.inter_op_num_threads = 1
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+    opts.log_severity_level = 3  # errors only: its warnings about unused initialisers are noise here
+    return opts
+
+
+def open_session(path: Path, options):
+    """An inference session on the CPU; a file onnxruntime cannot load is named in a ValueError."""
+    ort = _ort()
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as e:  # noqa: BLE001 - onnxruntime raises its own types for damaged graphs
+        detail = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{path}: onnxruntime cannot load it ({detail[:300]})") from None
+
+
+def draw_noise(seed: int, n: int, noise_dim: int) -> np.ndarray:
+    """The generator's noise (n, noise_dim) float32 ~ N(0, 1), from numpy's default generator seeded with ``seed``."""
+    return np.random.default_rng(seed).standard_normal((n, noise_dim), dtype=np.float32)
+
+
+class OnnxMotionModel:
+    """An exported folder with its sessions open: ``generate(requests)`` -> :class:`Generation`."""
+
+    def __init__(self, folder: str | os.PathLike, manifest: dict, *, variant: str = "fp32",
+                 threads: int | None = None, spinning: bool = False, check_files: bool = True) -> None:
+        self.folder, self.manifest, self.variant = Path(folder), manifest, variant
+        files = variant_files(self.folder, manifest, variant)
+        tokenizer = manifest.get("tokenizer")
+        if check_files:
+            used = [files[g] for g in GRAPHS if g in files] + ([tokenizer["file"]] if tokenizer else [])
+            verify(self.folder, manifest, used)
+        self.threads = threads or default_threads()
+        opts = session_options(self.threads, spinning)
+        self.sessions = {g: open_session(self.folder / files[g], opts) for g in GRAPHS if g in files}
+        self.tokenizer = _tokenizer(self.folder, tokenizer) if manifest["condition"] == "text" else None
+        f32 = lambda key: np.asarray(manifest[key], np.float32)  # noqa: E731
+        self.latent_mean, self.latent_std = f32("latent_mean"), f32("latent_std")  # (Z,)
+        self.feature_mean, self.feature_std = f32("feature_mean"), f32("feature_std")  # (263,)
+
+    @property
+    def max_frames(self) -> int:
+        return int(self.manifest["max_frames"])
+
+    def embed(self, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
+        """Sentence embeddings (N, D) float32 of ``texts``, as MiniLMEncoder.encode gives them."""
+        unique = list(dict.fromkeys(texts))
+        rows = []
+        for b in range(0, len(unique), batch_size):
+            enc = self.tokenizer.encode_batch(unique[b:b + batch_size])
+            ids = np.array([e.ids for e in enc], np.int64)  # (B, L)
+            mask = np.array([e.attention_mask for e in enc], np.int64)  # (B, L)
+            rows.append(self.sessions["text_encoder"].run(["embedding"], {"input_ids": ids, "attention_mask": mask})[0])
+        table = np.concatenate(rows) if rows else np.zeros((0, self.manifest["cond_dim"]), np.float32)
+        index = {t: i for i, t in enumerate(unique)}
+        return table[[index[t] for t in texts]]
+
+    def conditions(self, requests: list[Request], batch_size: int = 256) -> np.ndarray:
+        """The generator's condition per request: embeddings (R, D) float32, or action indices (R,) int64."""
+        if self.manifest["condition"] == "text":
+            if any(r.text is None for r in requests):
+                raise ValueError(f"{self.folder} is conditioned on text: give prompts (--text or --prompts), "
+                                 "not --action")
+            return self.embed([r.text for r in requests], batch_size)
+        names = self.manifest.get("action_names", [])
+        unknown = sorted({str(r.action) for r in requests if r.action not in names})
+        if unknown:
+            raise ValueError(f"unknown action(s) {unknown}; this model knows {names}")
+        return np.array([names.index(r.action) for r in requests], np.int64)
+
+    def latents(self, noise: np.ndarray, cond: np.ndarray, batch_size: int = 256) -> np.ndarray:
+        """Latents (N, Z) in the VAE's space: the generator's standardised output * std + mean."""
+        run = self.sessions["generator"].run
+        z = [run(["latent"], {"noise": noise[b:b + batch_size], "condition": cond[b:b + batch_size]})[0]
+             for b in range(0, len(noise), batch_size)]
+        return np.concatenate(z) * self.latent_std + self.latent_mean
+
+    def check_frames(self, frames: list[int]) -> None:
+        """Refuse lengths beyond the decoder's positional table, before any graph runs."""
+        bad = sorted({f for f in frames if not 1 <= f <= self.max_frames})
+        if bad:
+            raise ValueError(f"{bad[-1]} frames asked; this export decodes 1 to {self.max_frames} frames (the VAE's "
+                             "positional table)")
+
+    def decode(self, z: np.ndarray, frames: list[int], batch_size: int = 256) -> list[np.ndarray]:
+        """De-normalised features (T_i, 263) per latent; batches of similar lengths, padded frames masked."""
+        self.check_frames(frames)
+        out: list[np.ndarray] = [None] * len(frames)  # type: ignore[list-item]
+        order = sorted(range(len(frames)), key=lambda i: frames[i])
+        for b in range(0, len(order), batch_size):
+            idx = order[b:b + batch_size]
+            lengths = np.array([frames[i] for i in idx])
+            mask = np.arange(lengths.max())[None] < lengths[:, None]  # (B, T)
+            x = self.sessions["decoder"].run(["features"], {"latent": z[idx], "mask": mask})[0]  # (B, T, 263)
+            for j, i in enumerate(idx):
+                out[i] = x[j, :frames[i]] * self.feature_std + self.feature_mean
+        return out
+
+    def generate(self, requests: list[Request], *, num: int = 1, seed: int = 0, noise: np.ndarray | None = None,
+                 batch_size: int = 256) -> Generation:
+        """``num`` motions per request; ``noise`` (len(requests)*num, noise_dim) replaces the seeded draw."""
+        n, frames = len(requests) * num, [r.frames for r in requests for _ in range(num)]
+        if n == 0:
+            raise ValueError("nothing to generate: no requests (or num=0)")
+        self.check_frames(frames)
+        if noise is None:
+            noise = draw_noise(seed, n, int(self.manifest["noise_dim"]))
+        if noise.shape != (n, self.manifest["noise_dim"]):
+            raise ValueError(f"noise of shape {noise.shape}; expected ({n}, {self.manifest['noise_dim']})")
+        timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
+        t0 = time.perf_counter()
+        cond = self.conditions(requests, batch_size)
+        if self.manifest["condition"] == "text":
+            timings["text_encoding"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        z = self.latents(noise.astype(np.float32), np.repeat(cond, num, axis=0), batch_size)
+        timings["generator"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        feats = self.decode(z, frames, batch_size)
+        timings["vae_decoding"] = time.perf_counter() - t0
+        motions = [Motion(request=requests[k // num], sample=k % num, features=f, joints=recover_from_ric(f))
+                   for k, f in enumerate(feats)]
+        return Generation(motions=motions, timings_s=timings, seed=seed, **self._provenance())
+
+    def _provenance(self) -> dict:
+        """Generation's fields that say where the motions came from: the source checkpoints and this export."""
+        src = self.manifest["sources"]
+        files = variant_files(self.folder, self.manifest, self.variant)
+        return {
+            "gan": src["generator"]["path"], "vae": src["vae"]["path"], "kind": "gan",
+            "checkpoints": {k: {"path": src[k]["path"], "sha256": src[k]["weights_hash"]}
+                            for k in ("generator", "vae")},
+            "runtime": {"name": "onnx", "dir": str(self.folder.resolve()), "variant": self.variant,
+                        "threads": self.threads, "graphs": files,
+                        "format_version": self.manifest["format_version"]},
+        }
+
+
+def _tokenizer(folder: Path, settings: dict):
+    """The export's tokenizer with its recorded truncation and padding (whatever the file itself says)."""
+    from tokenizers import Tokenizer
+
+    tok = Tokenizer.from_file(str(folder / settings["file"]))
+    tok.enable_truncation(max_length=int(settings["max_length"]))
+    tok.enable_padding(pad_id=int(settings["pad_id"]), pad_token=settings["pad_token"])  # to the longest in a batch
+    return tok
+
+
+def load(folder: str | os.PathLike, *, variant: str = "fp32", threads: int | None = None,
+         spinning: bool = False) -> OnnxMotionModel:
+    """Open an exported folder (checked: format version, the SHA-256 of every file this variant uses)."""
+    return OnnxMotionModel(folder, read_manifest(folder), variant=variant, threads=threads, spinning=spinning)
+
+
+def generate_onnx(folder: str | os.PathLike, requests: list[Request], *, num: int = 1, seed: int = 0,
+                  noise: np.ndarray | None = None, variant: str = "fp32", threads: int | None = None,
+                  batch_size: int = 256) -> Generation:
+    """``lsgan generate --runtime onnx``: :func:`load` then :meth:`OnnxMotionModel.generate`."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    return load(folder, variant=variant, threads=threads).generate(requests, num=num, seed=seed, noise=noise,
+                                                                  batch_size=batch_size)

@@ -1,0 +1,128 @@
+"""What a generation is and how it is written: requests, motions, and the output folder of ``lsgan generate``.
+
+Torch-free, so that both runtimes share it: the torch one (:mod:`lsgan.generate`) and the ONNX one
+(:mod:`lsgan.deploy.runtime`), which must run where torch is not installed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lsgan import outputs
+from lsgan.data.skeleton import FPS
+from lsgan.io import atomic_file
+
+
+@dataclass
+class Request:
+    """One condition to generate for: a prompt or an action label, and a length in frames (20 fps)."""
+
+    text: str | None = None
+    action: str | None = None
+    frames: int = 120
+
+
+@dataclass
+class Motion:
+    request: Request
+    sample: int
+    features: np.ndarray  # (T, 263), de-normalised
+    joints: np.ndarray  # (T, 22, 3)
+
+
+@dataclass
+class Generation:
+    motions: list[Motion]
+    timings_s: dict[str, float] = field(default_factory=dict)
+    gan: str = ""  # the generator checkpoint (GAN or diffusion; the name is kept for compatibility)
+    vae: str = ""
+    seed: int = 0
+    kind: str = "gan"  # "gan" or "diffusion"
+    sampling: dict = field(default_factory=dict)  # diffusion: {"steps", "guidance", "eta"}; GAN: {}
+    runtime: dict = field(default_factory=lambda: {"name": "torch"})  # onnx: {"name", "dir", "variant", "threads"}
+    # {"generator": {"path", "sha256"}, "vae": {...}} when known without reading the checkpoints (an ONNX export
+    # records them); None: hashed from ``gan`` and ``vae`` when written
+    checkpoints: dict | None = None
+
+    @property
+    def ms_per_motion(self) -> float:
+        return 1000.0 * sum(self.timings_s.values()) / max(len(self.motions), 1)
+
+    @property
+    def inputs(self) -> list[str]:
+        """What was read to make these motions (an output may not lie inside it): the ONNX folder or the checkpoints."""
+        return [self.runtime["dir"]] if "dir" in self.runtime else [self.gan, self.vae]
+
+
+def read_prompts(path: str | os.PathLike, default_frames: int) -> list[Request]:
+    """One prompt per line, optionally ``prompt#frames``; blank lines and lines starting with '//' are skipped."""
+    out = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        line = line.strip()
+        if not line or line.startswith("//"):
+            continue
+        m = re.fullmatch(r"(.*)#\s*(\d+)\s*", line)
+        out.append(Request(text=m.group(1).strip(), frames=int(m.group(2))) if m else Request(text=line, frames=default_frames))
+    return out
+
+
+def _slug(text: str, limit: int = 40) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:limit] or "motion"
+
+
+def _checkpoints(result: Generation) -> dict:
+    """The generator and VAE checkpoints by path and weights hash (reads them: needs torch)."""
+    if result.checkpoints is not None:
+        return result.checkpoints
+    from lsgan.models.checkpoint import resolve, weights_hash
+
+    return {name: {"path": str(resolve(path)), "sha256": weights_hash(path)}
+            for name, path in (("generator", result.gan), ("vae", result.vae))}
+
+
+def write_generation(result: Generation, out: str | os.PathLike, *, force: bool = False) -> Path:
+    """features ``.npy``, joints ``.npy`` (T,22,3) per motion and ``manifest.json``; returns the manifest path.
+
+    An existing ``out`` is refused unless ``force``, which first clears the files an earlier lsgan run wrote
+    there (and only those).
+    """
+    out = claim_generation(out, *result.inputs, force=force)
+    out.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for i, m in enumerate(result.motions):
+        stem = f"{i:03d}_{_slug(m.request.text or m.request.action or 'motion')}"
+        for suffix, array in (("features", m.features), ("joints", m.joints)):
+            with atomic_file(outputs.claim_file(out / f"{stem}_{suffix}.npy", force=True)) as fh:
+                np.save(fh, array)
+        entries.append({
+            "index": i, "text": m.request.text, "action": m.request.action, "frames": int(len(m.features)),
+            "seconds": len(m.features) / FPS, "sample": m.sample, "features": f"{stem}_features.npy",
+            "joints": f"{stem}_joints.npy",
+        })
+    sources = _checkpoints(result)
+    generator = sources["generator"]
+    manifest = {
+        "seed": result.seed,
+        "fps": FPS,
+        "generator": {"kind": result.kind, **generator, **result.sampling},
+        "gan": generator,  # the generator checkpoint under its historical key, whatever its kind
+        "vae": sources["vae"],
+        "runtime": result.runtime,
+        "timings_s": result.timings_s,
+        "ms_per_motion": result.ms_per_motion,
+        "motions": entries,
+    }
+    path = outputs.claim_file(out / "manifest.json", force=True)
+    with atomic_file(path, "w", encoding="utf-8") as fh:
+        json.dump(manifest, fh, indent=1)
+    return path
+
+
+def claim_generation(out: str | os.PathLike, *inputs: str | os.PathLike, force: bool = False) -> Path:
+    """Check (before generating) that ``out`` may be written: see :func:`write_generation`."""
+    return outputs.claim_folder(out, force=force, inputs=inputs)

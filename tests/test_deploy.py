@@ -1,0 +1,283 @@
+"""ONNX export and the torch-free runtime: ``lsgan export-model --onnx``, ``lsgan generate --runtime onnx`` and the
+Python snippet of docs/deploy.md, on a tiny trained pipeline (a text GAN, an action GAN, their VAE)."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from cli_runs import lsgan, snapshot, tiny_pipeline
+
+from lsgan.deploy.int8 import joint_error_mm
+from lsgan.deploy.runtime import load
+from lsgan.generate import Request, generate
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[1]
+PROMPTS = ["a person walks forward", "someone waves the left hand", "a man jumps", "a woman squats down",
+           "the figure runs in a circle and then sits on the floor", "kick", "a person turns around twice"]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> Path:
+    """The tiny pipeline, an action GAN on its cache, and their exports: gan-onnx (fp32 + int8), act-onnx (fp32)."""
+    return tiny_pipeline(
+        tmp_path_factory.mktemp("deploy"),
+        ("train-gan", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--cond", "action", "--out", "act-gan"),
+        ("export-model", "gan", "-o", "gan-onnx", "--onnx", "--int8"),
+        ("export-model", "act-gan", "--vae", "vae", "-o", "act-onnx", "--onnx"),
+    )
+
+
+def torch_noise(seed: int, n: int, noise_dim: int) -> np.ndarray:
+    """The noise lsgan.generate draws for ``seed``: feeding it to the ONNX runtime makes the same motions."""
+    return torch.randn(n, noise_dim, generator=torch.Generator().manual_seed(seed)).numpy()
+
+
+def test_export_writes_the_promised_files(runs: Path) -> None:
+    from lsgan.models.checkpoint import resolve, weights_hash
+    from lsgan.outputs import file_sha256
+
+    m = json.loads((runs / "gan-onnx" / "manifest.json").read_text())
+    assert m["format"] == "lsgan-onnx" and m["condition"] == "text" and m["cond_dim"] == 384
+    assert (m["noise_dim"], m["latent_dim"], m["fps"], m["max_frames"]) == (8, 16, 20, 200)
+    assert len(m["latent_mean"]) == len(m["latent_std"]) == 16 and len(m["feature_std"]) == 263
+    assert m["tokenizer"]["max_length"] == 256 and m["tokenizer"]["lowercase"] is True
+    assert m["sources"]["vae"]["path"] == str(resolve(runs / "vae").resolve())
+    assert m["sources"]["vae"]["weights_hash"] == weights_hash(runs / "vae")
+    assert m["sources"]["generator"]["weights_hash"] == weights_hash(runs / "gan")
+    assert sorted(m["files"]) == sorted(["text_encoder.onnx", "generator.onnx",
+                                         "decoder.onnx", "decoder.int8.onnx", "tokenizer.json", "vocab.txt"])
+    for name, entry in m["files"].items():
+        assert file_sha256(runs / "gan-onnx" / name) == entry["sha256"], name
+    model = load(runs / "gan-onnx")
+    for graph, session in model.sessions.items():
+        for declared, actual in zip(m["graphs"][graph]["inputs"] + m["graphs"][graph]["outputs"],
+                                    session.get_inputs() + session.get_outputs()):
+            assert declared["name"] == actual.name
+            assert actual.type == f"tensor({'float' if declared['dtype'] == 'float32' else declared['dtype']})"
+            assert [d if isinstance(d, int) else None for d in declared["shape"]] == \
+                [d if isinstance(d, int) else None for d in actual.shape], graph
+    act = json.loads((runs / "act-onnx" / "manifest.json").read_text())
+    assert act["condition"] == "action" and act["action_names"] and "text_encoder" not in act["graphs"]
+    assert act["graphs"]["generator"]["inputs"][1] == {"name": "condition", "dtype": "int64", "shape": ["batch"]}
+
+
+@pytest.mark.parametrize("prompts, frames, num", [
+    (PROMPTS[:1], [40], 1),  # batch 1, shorter than the 64 frames traced
+    (PROMPTS[:3], [120, 196, 64], 2),  # batch 6, one motion longer than traced, mixed lengths in one batch
+    (PROMPTS, [150] * 7, 1),  # batch 7, prompts of other token counts than the 9 traced
+])
+def test_fp32_graphs_give_torchs_features(runs: Path, one_thread, prompts, frames, num) -> None:
+    """Same noise, same prompts: the ONNX runtime's features and joints equal lsgan.generate's within 1e-4."""
+    requests = [Request(text=p, frames=f) for p, f in zip(prompts, frames)]
+    ref = generate(runs / "gan", runs / "vae", requests, num=num, seed=3, device="cpu")
+    got = load(runs / "gan-onnx", threads=1).generate(requests, num=num, noise=torch_noise(3, len(requests) * num, 8))
+    assert [m.features.shape for m in got.motions] == [m.features.shape for m in ref.motions]
+    for a, b in zip(got.motions, ref.motions):
+        np.testing.assert_allclose(a.features, b.features, atol=1e-4, rtol=0)
+        np.testing.assert_allclose(a.joints, b.joints, atol=1e-4, rtol=0)
+
+
+def test_text_encoder_graph_gives_minilms_embeddings(runs: Path, one_thread) -> None:
+    from lsgan.models.text import load_text_encoder
+
+    model = load(runs / "gan-onnx", threads=1)
+    for batch in (PROMPTS[:1], PROMPTS, PROMPTS * 40):  # 280 prompts: two batches of the runtime
+        np.testing.assert_allclose(model.embed(batch), load_text_encoder("minilm").encode(batch).numpy(), atol=1e-5)
+
+
+def test_action_gan_exports_and_matches_torch(runs: Path, one_thread) -> None:
+    model = load(runs / "act-onnx", threads=1)
+    names = model.manifest["action_names"]
+    requests = [Request(action=names[i % len(names)], frames=f) for i, f in enumerate([48, 120, 196])]
+    ref = generate(runs / "act-gan", runs / "vae", requests, seed=1, device="cpu")
+    got = model.generate(requests, noise=torch_noise(1, 3, 8))
+    for a, b in zip(got.motions, ref.motions):
+        np.testing.assert_allclose(a.features, b.features, atol=1e-4, rtol=0)
+
+
+def doc_snippet() -> str:
+    """The Python block of docs/deploy.md that follows its deploy-snippet marker, exactly as written there."""
+    text = (ROOT / "docs" / "deploy.md").read_text()
+    found = re.search(r"<!-- deploy-snippet:[^>]*-->\n```python\n(.*?)```", text, re.S)
+    assert found, "docs/deploy.md lost its tested Python snippet"
+    return found.group(1)
+
+
+NO_TORCH = textwrap.dedent('''
+    import sys
+    from importlib.abc import MetaPathFinder
+
+    class NoTorch(MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name == "torch" or name.startswith("torch."):
+                raise ImportError(f"{name} is blocked: this code must run without torch")
+
+    sys.meta_path.insert(0, NoTorch())
+''')
+
+
+def test_runtime_and_doc_snippet_run_without_torch(runs: Path, tmp_path: Path) -> None:
+    """docs/deploy.md's snippet, lsgan's runtime and `lsgan generate --runtime onnx` with torch unimportable."""
+    (tmp_path / "gan-onnx").symlink_to(runs / "gan-onnx")  # the folder name the snippet uses
+    script = NO_TORCH + textwrap.dedent(f'''
+        import numpy as np
+        namespace = {{}}
+        exec(compile({doc_snippet()!r}, "docs/deploy.md", "exec"), namespace)
+        from lsgan.deploy.runtime import load
+        from lsgan.generation import Request
+        motions = load("gan-onnx").generate([Request(text="a person walks forward", frames=120)], seed=0).motions
+        from lsgan.cli import main
+        try:
+            main(["generate", "--runtime", "onnx", "--gan", "gan-onnx", "--text", "a person walks forward",
+                  "--frames", "120", "-o", "out"])
+        except SystemExit as e:
+            assert e.code == 0, e.code
+        assert not [m for m in sys.modules if m == "torch" or m.startswith("torch.")]
+        np.savez("result.npz", snippet=namespace["features"], snippet_joints=namespace["joints"],
+                 runtime=motions[0].features, runtime_joints=motions[0].joints)
+    ''')
+    out = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = np.load(tmp_path / "result.npz")
+    expected = load(runs / "gan-onnx").generate([Request(text="a person walks forward", frames=120)], seed=0).motions[0]
+    assert result["snippet"].shape == (1, 120, 263) and result["snippet_joints"].shape == (1, 120, 22, 3)
+    assert np.isfinite(result["snippet"]).all() and np.isfinite(result["snippet_joints"]).all()
+    np.testing.assert_allclose(result["snippet"][0], expected.features, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(result["snippet_joints"][0], expected.joints, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(result["runtime"], expected.features, atol=1e-5, rtol=0)
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    np.testing.assert_allclose(np.load(tmp_path / "out" / manifest["motions"][0]["features"]), expected.features,
+                               atol=1e-5, rtol=0)
+
+
+def test_generate_runtime_onnx_is_deterministic(runs: Path, tmp_path: Path) -> None:
+    args = ["generate", "--runtime", "onnx", "--gan", runs / "gan-onnx", "--text", PROMPTS[0], "--text", PROMPTS[1],
+            "--frames", 48, "--num", 2]
+    runs_ = (("a", ["--seed", 7]), ("b", ["--seed", 7]), ("c", ["--seed", 8]), ("q", ["--seed", 7, "--int8"]))
+    for name, extra in runs_:
+        out = lsgan(*args, *extra, "-o", tmp_path / name, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+        assert "ms per motion" in out.stderr
+    manifest = json.loads((tmp_path / "a" / "manifest.json").read_text())
+    assert manifest["runtime"]["name"] == "onnx" and manifest["runtime"]["variant"] == "fp32"
+    assert manifest["runtime"]["dir"] == str((runs / "gan-onnx").resolve()) and manifest["seed"] == 7
+    assert json.loads((tmp_path / "q" / "manifest.json").read_text())["runtime"]["variant"] == "int8"
+    assert manifest["gan"]["sha256"] == json.loads((runs / "gan-onnx" / "manifest.json").read_text())[
+        "sources"]["generator"]["weights_hash"]
+    files = sorted(p.name for p in (tmp_path / "a").glob("*.npy"))
+    assert len(files) == 8
+    for name in files:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+    assert not np.array_equal(np.load(tmp_path / "a" / files[0]), np.load(tmp_path / "c" / files[0]))
+
+
+def test_int8_error_is_recorded_and_reproduced(runs: Path) -> None:
+    """The manifest's int8 joint error is what the graphs give (recomputed here), and physically small."""
+    m = json.loads((runs / "gan-onnx" / "manifest.json").read_text())
+    int8 = m["variants"]["int8"]
+    assert int8["quantisation"]["graphs"] == ["decoder"]
+    assert int8["graphs"]["generator"] == "generator.onnx"  # the generator stays fp32
+    err = int8["joint_error_mm"]
+    assert err["motions"] == 100 and 0 < err["mean"] <= err["max"]
+    assert err["mean"] < 50, "int8 moved the joints by more than 5 cm on average"
+    again = joint_error_mm(load(runs / "gan-onnx"), load(runs / "gan-onnx", variant="int8"))
+    assert again["mean"] == pytest.approx(err["mean"], rel=1e-4) and again["max"] == pytest.approx(err["max"], rel=1e-4)
+    assert int8["graphs"]["text_encoder"] == "text_encoder.onnx"  # so does the text encoder
+    size = {name: (runs / "gan-onnx" / name).stat().st_size for name in ("decoder.onnx", "decoder.int8.onnx")}
+    assert size["decoder.int8.onnx"] < size["decoder.onnx"]  # int8 matrices (the tiny model is mostly other tensors)
+
+
+def test_force_replaces_only_lsgans_files(runs: Path, tmp_path: Path) -> None:
+    """Exporting again with --force replaces the earlier export and keeps the user's own file beside it."""
+    args = ["export-model", runs / "act-gan", "--vae", runs / "vae", "-o", tmp_path / "act", "--onnx"]
+    assert lsgan(*args, cwd=tmp_path).returncode == 0
+    (tmp_path / "act" / "notes.txt").write_text("mine")
+    again = lsgan(*args, cwd=tmp_path)
+    assert again.returncode == 1 and "pass --force" in again.stderr
+    again = lsgan(*args, "--force", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert (tmp_path / "act" / "notes.txt").read_text() == "mine"
+    assert load(tmp_path / "act").generate([Request(action="walk", frames=40)]).motions[0].joints.shape == (40, 22, 3)
+
+
+def test_only_gans_export(tmp_path: Path) -> None:
+    """A latent-diffusion run is refused with the reason, before anything is written."""
+    from lsgan.deploy.onnx_export import export_onnx
+
+    (tmp_path / "diffusion").mkdir()
+    (tmp_path / "diffusion" / "config.json").write_text(json.dumps({"kind": "diffusion", "config": {}}))
+    with pytest.raises(ValueError, match="only GANs export to ONNX"):
+        export_onnx(tmp_path / "diffusion", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+# ---- bad input, in tests/test_bad_input.py's style ------------------------------------------------------------
+
+
+def linked_copy(src: Path, dst: Path) -> Path:
+    """A copy of an export whose files are hard links (a changed file must be replaced, not edited in place)."""
+    shutil.copytree(src, dst, copy_function=os.link)
+    return dst
+
+
+def corrupt_graph(w: Path, runs: Path) -> Path:
+    d = linked_copy(runs / "gan-onnx", w / "gan-onnx")
+    data = (d / "decoder.onnx").read_bytes()
+    (d / "decoder.onnx").unlink()
+    (d / "decoder.onnx").write_bytes(data[: len(data) // 2])
+    return d
+
+
+def future_format(w: Path, runs: Path) -> Path:
+    d = linked_copy(runs / "gan-onnx", w / "gan-onnx")
+    m = json.loads((d / "manifest.json").read_text())
+    (d / "manifest.json").unlink()
+    (d / "manifest.json").write_text(json.dumps({**m, "format_version": 99}))
+    return d
+
+
+def onnx_args(gan: Path, w: Path, *extra) -> list:
+    return ["generate", "--runtime", "onnx", "--gan", gan, "--text", "a person walks", "-o", w / "out", *extra]
+
+
+BAD = [
+    ("no-manifest", lambda w, r: onnx_args(r / "gan", w), 1, "no manifest.json"),
+    ("corrupt-graph", lambda w, r: onnx_args(corrupt_graph(w, r), w), 1, "decoder.onnx: changed since it was exported"),
+    ("format-version", lambda w, r: onnx_args(future_format(w, r), w), 1, "format version 99"),
+    ("int8-not-exported", lambda w, r: ["generate", "--runtime", "onnx", "--int8", "--gan", r / "act-onnx",
+                                        "--action", "walk", "-o", w / "out"], 1, "export with --int8"),
+    ("too-many-frames", lambda w, r: onnx_args(r / "gan-onnx", w, "--frames", 500), 1, "1 to 200 frames"),
+    ("action-for-text-model", lambda w, r: ["generate", "--runtime", "onnx", "--gan", r / "gan-onnx", "--action",
+                                            "walk", "-o", w / "out"], 1, "conditioned on text"),
+    ("vae-with-onnx", lambda w, r: onnx_args(r / "gan-onnx", w, "--vae", r / "vae"), 2, "--vae"),
+    ("int8-with-torch", lambda w, r: ["generate", "--gan", r / "gan", "--vae", r / "vae", "--text", "x", "--int8",
+                                      "-o", w / "out"], 2, "--runtime onnx"),
+]
+
+
+@pytest.mark.parametrize("args, code, phrase", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
+def test_bad_onnx_input(args, code: int, phrase: str, runs: Path, tmp_path: Path) -> None:
+    """Exit code, one `error:` line holding the phrase, no traceback, no existing file changed."""
+    w = tmp_path / "w"
+    w.mkdir()
+    argv = args(w, runs)
+    before = snapshot(w, runs / "gan-onnx", runs / "act-onnx")
+    out = lsgan(*argv, cwd=w)
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert out.returncode == code, out.stderr
+    assert len(errors) == 1 and phrase.lower() in errors[0].lower(), out.stderr
+    assert "Traceback" not in out.stderr
+    after = snapshot(w, runs / "gan-onnx", runs / "act-onnx")
+    assert not [str(p) for p, h in before.items() if after.get(p) != h], "pre-existing files changed or removed"
+    assert not (w / "out").exists() or not any((w / "out").iterdir())
