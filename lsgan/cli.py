@@ -644,7 +644,7 @@ def _check_runtime_options(runtime: str, *, vae, int8, text_encoder_path, device
 @main.command("export-model", epilog="""\b
 Examples:
   lsgan export-model runs/gan -o gan-onnx --onnx               # text encoder, generator, decoder + manifest.json
-  lsgan export-model runs/gan -o gan-onnx --onnx --int8 --force   # also int8 graphs, with their joint error
+  lsgan export-model runs/gan -o gan-onnx --onnx --int8 --force   # also an int8 decoder, with its joint error
   lsgan export-model runs/act-gan --vae runs/vae -o act-onnx --onnx
   lsgan generate --runtime onnx --gan gan-onnx --text "a person walks forward" -o out/
 \b
@@ -653,8 +653,8 @@ Calling the graphs from Python, C++ or C# without lsgan: docs/deploy.md.
 @click.argument("run", type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(), help="Folder for the graphs, tokenizer and manifest.json.")
 @click.option("--onnx", "as_onnx", is_flag=True, help="ONNX graphs (the one format so far).")
-@click.option("--int8", is_flag=True, help="Also write int8 graphs of the text encoder and decoder (dynamic "
-              "quantisation) and measure their joint error against fp32 on 100 fixed motions.")
+@click.option("--int8", is_flag=True, help="Also write an int8 decoder (dynamic quantisation; the text encoder and "
+              "generator stay fp32) and measure its joint error against fp32 on 100 fixed motions.")
 @click.option("--vae", type=click.Path(exists=True), help="The GAN's VAE (default: the one its latent cache was "
               "encoded with, as its config.json records).")
 @click.option("--text-encoder-path", type=click.Path(exists=True, file_okay=False),

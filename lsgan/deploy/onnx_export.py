@@ -12,7 +12,7 @@ What is written, in order (the manifest last, so a folder without one is an unfi
     vocab.txt           its WordPiece vocabulary (for BERT tokenizers that read one, e.g. C#'s)
     generator.onnx      noise (B, noise_dim) float32, condition -> latent (B, Z) float32, standardised
     decoder.onnx        latent (B, Z) float32 (de-standardised), mask (B, T) bool -> features (B, T, 263)
-    *.int8.onnx         with --int8: the text encoder and decoder with int8 weights (lsgan.deploy.int8)
+    decoder.int8.onnx   with --int8: the decoder with int8 weights (lsgan.deploy.int8)
     manifest.json       lsgan.deploy.manifest
 
 The condition is the text embedding (B, 384) float32, or for an action GAN the action's index (B,) int64 into
