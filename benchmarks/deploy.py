@@ -15,9 +15,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
+import os
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,22 +30,9 @@ from lsgan.eval.bench import PAPER_VAE
 from lsgan.models.text import load_text_encoder
 from lsgan.models.vae import MotionVAE
 
+from export import timed  # benchmarks/export.py: the median of repeated calls after a warm-up
+
 FRAMES, BATCHES = 120, (1, 256)
-
-
-def timed(fn, repeats: int) -> float:
-    """Median seconds of ``repeats`` calls after one warm-up."""
-    fn()
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - start)
-    return statistics.median(samples)
-
-
-def load_average() -> float:
-    return float(Path("/proc/loadavg").read_text().split()[0])
 
 
 def export_both(folder: Path) -> tuple[MotionVAE, object]:
@@ -115,12 +101,12 @@ def main() -> None:
     parser.add_argument("--json", help="write the rows here as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    before = load_average()
+    before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         vae, enc = export_both(Path(tmp))
         rows = decoder_rows(vae, Path(tmp), args.threads, args.repeats)
         rows += text_rows(enc, Path(tmp), args.threads, args.repeats)
-    print(f"load average (1 min): {before:.2f} before, {load_average():.2f} after; {args.threads} threads, "
+    print(f"load average (1 min): {before:.2f} before, {os.getloadavg()[0]:.2f} after; {args.threads} threads, "
           f"median of {args.repeats}")
     print("| model | runtime | spinning | batch | ms per item |\n| --- | --- | --- | ---: | ---: |")
     for r in rows:
