@@ -2,10 +2,11 @@
 
 The decoder is paper-sized (``lsgan.eval.bench.PAPER_VAE``, random weights) decoding 120 frames; the text encoder is
 the packaged MiniLM on lsgan.deploy.int8's reference prompts, tokenised beforehand (both runtimes get the same ids).
-Both are exported as ``lsgan export-model`` exports them (``lsgan.deploy.onnx_export.export_graph``) and quantised
-with both weight types (QInt8, QUInt8). Each figure is the median of ``--repeats`` timed runs after one warm-up, in
-ms per motion (decoder) or per prompt (text), at batch 1 and 256; onnxruntime with ``--threads`` intra-op threads,
-spin-waiting off and on (the decoder); torch eager with the same number of threads. The 1-minute load average is
+Both are exported as ``lsgan export-model`` exports them (``lsgan.deploy.onnx_export.export_graph``) and their
+feed-forward products quantised as ``--int8`` does (lsgan.deploy.int8), with both weight types (QInt8, QUInt8).
+Each figure is the median of ``--repeats`` timed runs after one warm-up, in ms per motion (decoder) or per prompt
+(text), at batch 1 and 256; onnxruntime with ``--threads`` intra-op threads, spin-waiting off and on (the decoder);
+torch eager with the same number of threads. The 1-minute load average is
 printed before and after: compare figures from quiet runs.
 
     python benchmarks/deploy.py
@@ -49,9 +50,11 @@ def export_both(folder: Path) -> tuple[MotionVAE, object]:
     export_graph(TextGraph(enc), (ids, att),
                  {"input_ids": {0: batch, 1: tokens}, "attention_mask": {0: batch, 1: tokens}}, "embedding",
                  folder / "text_encoder.onnx")
-    for graph in ("decoder", "text_encoder"):
+    feed_forward = {"decoder": q.DECODER_FEED_FORWARD, "text_encoder": q.MINILM_FEED_FORWARD}
+    for graph, modules in feed_forward.items():
         for weights in ("QInt8", "QUInt8"):
-            q.quantise(folder / f"{graph}.onnx", folder / f"{graph}.{weights}.onnx", weight_type=weights)
+            q.quantise(folder / f"{graph}.onnx", folder / f"{graph}.{weights}.onnx", modules=modules,
+                       weight_type=weights)
     return vae, enc
 
 

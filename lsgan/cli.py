@@ -653,8 +653,9 @@ Calling the graphs from Python, C++ or C# without lsgan: docs/deploy.md.
 @click.argument("run", type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(), help="Folder for the graphs, tokenizer and manifest.json.")
 @click.option("--onnx", "as_onnx", is_flag=True, help="ONNX graphs (the one format so far).")
-@click.option("--int8", is_flag=True, help="Also write an int8 decoder (dynamic quantisation; the text encoder and "
-              "generator stay fp32) and measure its joint error against fp32 on 100 fixed motions.")
+@click.option("--int8", is_flag=True, help="Also write a decoder with int8 feed-forward products (dynamic "
+              "quantisation, per-channel weights; everything else stays fp32) and measure its joint error against "
+              "fp32 on 100 fixed motions.")
 @click.option("--vae", type=click.Path(exists=True), help="The GAN's VAE (default: the one its latent cache was "
               "encoded with, as its config.json records).")
 @click.option("--text-encoder-path", type=click.Path(exists=True, file_okay=False),
@@ -878,6 +879,71 @@ def plot_latents_cmd(cache, model, split, per_class, steps, guidance, seed, devi
     except ValueError as e:
         _fail(str(e))
     click.echo(f"wrote {path}", err=True)
+
+
+@main.command(epilog="""\b
+Examples:
+  lsgan serve --gan runs/gan --vae runs/vae                 # http://127.0.0.1:8000/ : the page; the API at /v1
+  lsgan serve --model gan-onnx                              # an `export-model --onnx` folder (onnxruntime)
+  lsgan serve --model gan-onnx --int8 --port 8080
+  LSGAN_API_KEY=secret lsgan serve --gan runs/gan --vae runs/vae --host 0.0.0.0   # reachable from other machines
+  lsgan serve --gan runs/gan --vae runs/vae --max-num 4 --max-in-flight 32 --timeout 5
+  curl -s localhost:8000/v1/generate -H 'Content-Type: application/json' -d '{"text": "a person waves", "seed": 1}'
+\b
+The API (endpoints, limits, errors): docs/api.md, and /docs on the running server. SIGTERM finishes the requests
+in flight and exits 0.
+""")
+@click.option("--gan", type=click.Path(exists=True), help="GAN checkpoint (run or checkpoint folder); with --vae.")
+@click.option("--vae", type=click.Path(exists=True), help="The VAE whose latents the GAN learned.")
+@click.option("--model", type=click.Path(exists=True, file_okay=False),
+              help="Instead of --gan/--vae: a folder `lsgan export-model --onnx` wrote (runs without torch's models).")
+@click.option("--int8", is_flag=True, help="--model: the int8 decoder (an export made with --int8).")
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to listen on; anything but loopback makes the server reachable from other machines.")
+@click.option("--port", default=8000, show_default=True, type=click.IntRange(0, 65535), help="TCP port (0: any free one).")
+@click.option("--api-key", envvar="LSGAN_API_KEY", show_envvar=True,
+              help="Require this key on /v1 (Authorization: Bearer KEY or X-API-Key); the page and /healthz stay open.")
+@click.option("--device", default="auto", show_default=True, help="--gan/--vae: auto, cpu, cuda or cuda:N.")
+@click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder.")
+@click.option("--text-cache", default=1024, show_default=True, type=click.IntRange(0),
+              help="--gan/--vae: prompt embeddings kept across requests (0: none).")
+@click.option("--max-text-chars", default=500, show_default=True, type=click.IntRange(1), help="Longest prompt.")
+@click.option("--min-frames", default=4, show_default=True, type=click.IntRange(1), help="Shortest motion.")
+@click.option("--max-frames", type=click.IntRange(1),
+              help="Longest motion (default: the model's maximum, at most 196; never more than the model's).")
+@click.option("--default-frames", type=click.IntRange(1), help="Length when a request gives none (default 120).")
+@click.option("--max-num", default=8, show_default=True, type=click.IntRange(1), help="Motions per request.")
+@click.option("--max-body-bytes", default=16384, show_default=True, type=click.IntRange(64), help="Largest request body.")
+@click.option("--max-in-flight", default=64, show_default=True, type=click.IntRange(1),
+              help="Requests admitted at once; more get 503 with Retry-After.")
+@click.option("--timeout", "timeout_s", default=10.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Seconds a request may take; then 503.")
+@click.option("--gather-ms", default=5.0, show_default=True, type=click.FloatRange(0, 1000),
+              help="How long a pass waits for more requests to batch with the first.")
+@click.option("--max-batch", default=32, show_default=True, type=click.IntRange(1), help="Motions in one engine pass.")
+@click.option("--store-size", default=256, show_default=True, type=click.IntRange(1),
+              help="Motions kept for download (least recently used dropped first).")
+def serve(gan, vae, model, int8, host, port, api_key, device, text_encoder_path, text_cache, **limits) -> None:
+    """Serve the model over HTTP: the API (/v1/generate, /v1/motions/ID.glb|.bvh|.npy, /v1/info), its OpenAPI
+    docs (/docs) and a page at / to type a sentence, watch the motion and download it. Models load once;
+    concurrent requests are batched into one generator and decoder pass."""
+    from lsgan.models.text import TextEncoderUnavailable
+    from lsgan.serve.limits import Limits
+    from lsgan.serve.server import serve as run
+
+    if model is not None and (gan is not None or vae is not None):
+        raise click.UsageError("give --model (an exported folder) or --gan and --vae (checkpoints), not both")
+    if model is None and (gan is None or vae is None):
+        raise click.UsageError("give --gan RUN and --vae RUN, or --model EXPORT_DIR")
+    if int8 and model is None:
+        raise click.UsageError("--int8 goes with --model (an ONNX export made with --int8)")
+    if model is not None and (text_encoder_path is not None or device not in ("auto", "cpu")):
+        raise click.UsageError("--text-encoder-path and --device go with --gan/--vae (an export runs on the CPU)")
+    try:
+        run(gan=gan, vae=vae, model=model, int8=int8, host=host, port=port, api_key=api_key, limits=Limits(**limits),
+            device=device, text_encoder_path=text_encoder_path, text_cache=text_cache)
+    except (ValueError, OSError, RuntimeError, TextEncoderUnavailable) as e:
+        _fail(describe(e))
 
 
 if __name__ == "__main__":

@@ -8,8 +8,10 @@ halves of guidance: the time from conditions to latents either way) and ``vae_de
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -55,20 +57,66 @@ def load_generator(path: str | os.PathLike, device: str | torch.device = "cpu", 
     raise ValueError(f"{path}: holds a {kind!r} checkpoint, not a generator (GAN or diffusion: {GENERATOR_KINDS})")
 
 
-def _conditions(model, extra: dict, name, requests: list[Request], dev: torch.device,
-                text_encoder_path: str | None, timings: dict[str, float]) -> torch.Tensor:
+@dataclass
+class Loaded:
+    """A generator with its VAE and text encoder, loaded once: what ``generate`` and ``lsgan serve`` run."""
+
+    model: torch.nn.Module
+    meta: dict  # the generator's
+    decoder: torch.nn.Module
+    vae_meta: dict
+    device: torch.device
+    encoder: object | None  # the generator's TextEncoder; None for an action-conditioned model
+    gan: str
+    vae: str
+
+    @property
+    def max_frames(self) -> int:
+        """The longest motion the VAE decodes (its positional table)."""
+        return int(self.vae_meta["config"]["model"].get("max_len", 1024))
+
+
+def load_models(gan: str | os.PathLike, vae: str | os.PathLike, *, device: str | torch.device = "auto",
+                text_encoder_path: str | None = None, strict_pairing: bool = True) -> Loaded:
+    """The generator checkpoint ``gan``, the VAE it learned from and its text encoder, on ``device``."""
+    from lsgan.models.checkpoint import weights_hash
+    from lsgan.models.vae import load_vae
+    from lsgan.train.common import pick_device
+
+    dev = pick_device(device) if isinstance(device, str) else device
+    model, gmeta = load_generator(gan, device=dev)
+    decoder, vmeta = load_vae(vae, device=dev)
+    extra = gmeta.get("extra", {})
+    if strict_pairing and extra.get("vae_hash") and extra["vae_hash"] != weights_hash(vae):
+        raise ValueError(
+            f"{gan} was trained on latents of another VAE checkpoint than {vae}; "
+            f"use the VAE its cache was encoded with (its path is in the {gmeta['kind']}'s config.json)"
+        )
+    encoder = text_encoder_for(model, extra, gan, dev, text_encoder_path)
+    return Loaded(model, gmeta, decoder, vmeta, dev, encoder, str(gan), str(vae))
+
+
+def text_encoder_for(model, extra: dict, name, dev: torch.device, text_encoder_path: str | None):
+    """The text encoder a text-conditioned generator was trained with (checked by id); None for action models."""
+    if model.config.cond != "text":
+        return None
+    from lsgan.models.text import load_text_encoder
+
+    enc_id = extra.get("text_encoder", "minilm")
+    enc = load_text_encoder(enc_id.split(":")[0], path=text_encoder_path, device=dev)
+    if enc.id != enc_id:
+        raise ValueError(f"{name} was trained with text encoder {enc_id!r}, but {enc.id!r} was loaded")
+    return enc
+
+
+def _conditions(model, extra: dict, name, requests: list[Request], dev: torch.device, encoder,
+                timings: dict[str, float]) -> torch.Tensor:
     """The condition per request: text embeddings (R, D) from the model's own text encoder, or action ids (R,)."""
     if model.config.cond == "text":
         if any(r.text is None for r in requests):
             raise ValueError(f"{name} is conditioned on text: give prompts (--text or --prompts), not --action")
-        from lsgan.models.text import load_text_encoder
-
-        enc_id = extra.get("text_encoder", "minilm")
-        enc = load_text_encoder(enc_id.split(":")[0], path=text_encoder_path, device=dev)
-        if enc.id != enc_id:
-            raise ValueError(f"{name} was trained with text encoder {enc_id!r}, but {enc.id!r} was loaded")
         t0 = time.perf_counter()
-        cond = enc.encode([r.text for r in requests]).to(dev)
+        cond = encoder.encode([r.text for r in requests]).to(dev)
         _sync(dev)
         timings["text_encoding"] = time.perf_counter() - t0
         return cond
@@ -79,22 +127,33 @@ def _conditions(model, extra: dict, name, requests: list[Request], dev: torch.de
     return torch.tensor([names.index(r.action) for r in requests], device=dev)
 
 
-def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device, *, num: int, seed: int,
-             text_encoder_path: str | None, batch_size: int, steps: int | None, guidance: float | None,
-             eta: float | None, timings: dict[str, float]) -> tuple[torch.Tensor, dict]:
-    """(latents (R*num, Z) in the VAE's latent space, on dev; the diffusion sampling options used, {} for a GAN).
+def draw_noise(seed: int, n: int, dim: int) -> tuple[torch.Tensor, torch.Generator]:
+    """The starting noise (n, dim) of ``generate --seed SEED`` for n motions, drawn on the CPU, and its generator
+    (a diffusion's later steps go on drawing from it)."""
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    return torch.randn(n, dim, generator=g), g
 
-    The starting noise (the GAN's noise, the diffusion's z_T) of every motion is drawn up front on the CPU from
-    ``seed``, so latents depend neither on ``batch_size`` nor on the device's random generator.
+
+def noise_dim(model, meta: dict) -> int:
+    """The size of one motion's starting noise: the GAN's noise, or the diffusion's z_T."""
+    return model.config.noise_dim if meta["kind"] == "gan" else model.config.latent_dim
+
+
+def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device, *, nums: list[int],
+             noise: torch.Tensor, g: torch.Generator | None, encoder, batch_size: int, steps: int | None,
+             guidance: float | None, eta: float | None, timings: dict[str, float]) -> tuple[torch.Tensor, dict]:
+    """(latents (sum(nums), Z) in the VAE's latent space, on dev; the diffusion sampling options used, {} for a GAN).
+
+    ``nums[i]`` motions for ``requests[i]``, started from the rows of ``noise`` in that order (drawn up front on the
+    CPU, so latents depend neither on ``batch_size`` nor on the device's random generator).
     """
     extra = meta.get("extra", {})
-    cond = _conditions(model, extra, name, requests, dev, text_encoder_path, timings)
-    cond = cond.repeat_interleave(num, dim=0)  # (R*num, ...)
+    cond = _conditions(model, extra, name, requests, dev, encoder, timings)
+    cond = cond.repeat_interleave(torch.tensor(nums, device=cond.device), dim=0)  # (sum(nums), ...)
     n = len(cond)
-    g = torch.Generator(device="cpu").manual_seed(seed)
+    noise = noise.to(dev)
     if meta["kind"] == "gan":
         sampling: dict = {}
-        noise = torch.randn(n, model.config.noise_dim, generator=g).to(dev)
 
         def latents(noise_b: torch.Tensor, cond_b: torch.Tensor) -> torch.Tensor:
             return model.generator(noise_b, cond_b)
@@ -105,7 +164,6 @@ def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device
                     "eta": cfg.eta if eta is None else eta}
         if sampling["steps"] < 1:
             raise ValueError(f"steps must be >= 1, got {sampling['steps']}")
-        noise = torch.randn(n, cfg.latent_dim, generator=g).to(dev)  # z_T
 
         def latents(noise_b: torch.Tensor, cond_b: torch.Tensor) -> torch.Tensor:
             return model.sample(cond_b, generator=g, noise=noise_b, **sampling)
@@ -118,6 +176,32 @@ def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device
         _sync(dev)
         timings["generator"] = time.perf_counter() - t0
     return z, sampling
+
+
+def run_models(loaded: Loaded, requests: list[Request], nums: list[int], noise: torch.Tensor, *,
+               g: torch.Generator | None = None, batch_size: int = 256, steps: int | None = None,
+               guidance: float | None = None, eta: float | None = None,
+               threads: ThreadPolicy | None = None) -> tuple[list[np.ndarray], dict, dict]:
+    """Features (T, 263) of ``nums[i]`` motions per request, from ``noise`` (one row per motion, in order): the
+    pass ``generate`` and ``lsgan serve`` share. Returns (features, timings in s, sampling options).
+
+    ``threads``: a caller's long-lived policy (a server's: it measures the machine's load across passes), updated
+    here; by default one made for this pass and undone after it.
+    """
+    timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
+    dev = loaded.device
+    own = threads is None
+    policy = ThreadPolicy(large=min(batch_size, sum(nums)) >= LARGE_BATCH,
+                          threads=None if dev.type == "cpu" else torch.get_num_threads()) if own else threads
+    with policy if own else contextlib.nullcontext():
+        if not own:
+            policy.update()
+        z, sampling = _latents(loaded.model, loaded.meta, loaded.gan, requests, dev, nums=nums, noise=noise, g=g,
+                               encoder=loaded.encoder, batch_size=batch_size, steps=steps, guidance=guidance,
+                               eta=eta, timings=timings)
+        frames = [r.frames for r, k in zip(requests, nums) for _ in range(k)]
+        feats = _decode(loaded.decoder, loaded.vae_meta, z, frames, dev, batch_size, policy, timings)
+    return feats, timings, sampling
 
 
 def sample_latents(
@@ -138,7 +222,9 @@ def sample_latents(
 
     dev = pick_device(device)
     model, meta = load_generator(gen, device=dev)
-    z, _ = _latents(model, meta, gen, requests, dev, num=num, seed=seed, text_encoder_path=text_encoder_path,
+    encoder = text_encoder_for(model, meta.get("extra", {}), gen, dev, text_encoder_path)
+    noise, g = draw_noise(seed, len(requests) * num, noise_dim(model, meta))
+    z, _ = _latents(model, meta, gen, requests, dev, nums=[num] * len(requests), noise=noise, g=g, encoder=encoder,
                     batch_size=batch_size, steps=steps, guidance=guidance, eta=eta, timings={})
     return z.cpu().numpy()
 
@@ -166,35 +252,18 @@ def generate(
     both kinds (``Generation.sampling`` records what was used: {} for a GAN). With eta > 0 the noise of the
     DDIM steps is drawn batch by batch, so it depends on ``batch_size``; the starting noise never does.
     """
-    from lsgan.models.checkpoint import weights_hash
-    from lsgan.models.vae import load_vae
-    from lsgan.train.common import pick_device
-
-    dev = pick_device(device)
-    model, gmeta = load_generator(gan, device=dev)
-    decoder, vmeta = load_vae(vae, device=dev)
-    extra = gmeta.get("extra", {})
-    if strict_pairing and extra.get("vae_hash") and extra["vae_hash"] != weights_hash(vae):
-        raise ValueError(
-            f"{gan} was trained on latents of another VAE checkpoint than {vae}; "
-            f"use the VAE its cache was encoded with (its path is in the {gmeta['kind']}'s config.json)"
-        )
-    timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
-    threads = ThreadPolicy(large=min(batch_size, len(requests) * num) >= LARGE_BATCH,
-                           threads=None if dev.type == "cpu" else torch.get_num_threads())
-    with threads:
-        z, sampling = _latents(model, gmeta, gan, requests, dev, num=num, seed=seed,
-                               text_encoder_path=text_encoder_path, batch_size=batch_size, steps=steps,
-                               guidance=guidance, eta=eta, timings=timings)
-        feats = _decode(decoder, vmeta, z, [r.frames for r in requests for _ in range(num)], dev, batch_size,
-                        threads, timings)
+    loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path,
+                         strict_pairing=strict_pairing)
+    noise, g = draw_noise(seed, len(requests) * num, noise_dim(loaded.model, loaded.meta))
+    feats, timings, sampling = run_models(loaded, requests, [num] * len(requests), noise, g=g, batch_size=batch_size,
+                                          steps=steps, guidance=guidance, eta=eta)
     motions = [
         Motion(request=requests[k // num], sample=k % num, features=f.astype(np.float32),
                joints=recover_from_ric(f.astype(np.float32)))
         for k, f in enumerate(feats)
     ]
-    return Generation(motions=motions, timings_s=timings, gan=str(gan), vae=str(vae), seed=seed, kind=gmeta["kind"],
-                      sampling=sampling)
+    return Generation(motions=motions, timings_s=timings, gan=str(gan), vae=str(vae), seed=seed,
+                      kind=loaded.meta["kind"], sampling=sampling)
 
 
 def _decode(decoder, vmeta: dict, z: torch.Tensor, frames: list[int], dev: torch.device, batch_size: int,

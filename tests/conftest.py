@@ -44,3 +44,16 @@ def one_thread(monkeypatch):
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def serve_models(tmp_path_factory) -> Path:
+    """What the ``lsgan serve`` tests serve: cli_runs' tiny pipeline (a text GAN ``gan`` on ``vae``), an action GAN
+    ``act-gan`` on the same cache, and the text GAN exported as ONNX (``gan-onnx``). Built once per session."""
+    from cli_runs import tiny_pipeline
+
+    return tiny_pipeline(
+        tmp_path_factory.mktemp("serve"),
+        ("train-gan", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--cond", "action", "--out", "act-gan"),
+        ("export-model", "gan", "-o", "gan-onnx", "--onnx"),
+    )

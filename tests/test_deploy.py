@@ -198,6 +198,24 @@ def test_int8_error_is_recorded_and_reproduced(runs: Path) -> None:
     assert size["decoder.int8.onnx"] < size["decoder.onnx"]  # int8 matrices (the tiny model is mostly other tensors)
 
 
+def test_int8_quantises_the_feed_forward_products_only(runs: Path) -> None:
+    """Two int8 products per decoder layer (d -> ff, ff -> d), per channel; every other product stays fp32."""
+    import onnx
+
+    m = json.loads((runs / "gan-onnx" / "manifest.json").read_text())
+    cfg = json.loads((runs / "vae" / "best" / "config.json").read_text())["config"]["model"]
+    nodes = m["variants"]["int8"]["quantisation"]["quantised_nodes"]
+    assert len(nodes) == 2 * cfg["num_layers"]
+    graph = onnx.load(str(runs / "gan-onnx" / "decoder.int8.onnx")).graph
+    integer = [n for n in graph.node if n.op_type in ("MatMulInteger", "DynamicQuantizeMatMul")]
+    assert len(integer) == len(nodes)
+    fp32 = onnx.load(str(runs / "gan-onnx" / "decoder.onnx")).graph
+    products = [n for n in fp32.node if n.op_type in ("MatMul", "Gemm")]
+    assert len(products) > len(nodes)  # attention, skip and output products were left in fp32
+    scales = {i.name: tuple(i.dims) for i in graph.initializer if i.name.endswith("_scale")}
+    assert any(dims and dims[0] > 1 for dims in scales.values())  # per-channel weight scales
+
+
 def test_force_replaces_only_lsgans_files(runs: Path, tmp_path: Path) -> None:
     """Exporting again with --force replaces the earlier export and keeps the user's own file beside it."""
     args = ["export-model", runs / "act-gan", "--vae", runs / "vae", "-o", tmp_path / "act", "--onnx"]

@@ -108,6 +108,28 @@ def test_shapes_and_masks(config):
         assert torch.equal(vae(x, mask, sample=False)[0], out)  # no sampling: z = mu
 
 
+
+@pytest.mark.parametrize("norm_first", [True, False])
+def test_inference_decoder_computes_the_one_token_cross_attention_once(norm_first):
+    """In eval mode decode() skips the cross-attention's per-frame products (one memory token: softmax is 1);
+    the features equal those of torch's TransformerDecoderLayer stack, padding included."""
+    torch.manual_seed(0)
+    vae = MotionVAE(VAEConfig(d_model=32, num_heads=4, ff_size=64, num_layers=5, norm_first=norm_first)).eval()
+    z = torch.randn(3, 256)
+    mask = torch.arange(40)[None] < torch.tensor([[40], [25], [7]])
+    with torch.no_grad():
+        fast = vae.decode(z, mask)
+        memory = vae.from_latent(z)[:, None]
+        queries = vae.dec_pos(memory.new_zeros(3, 40, 32))
+        full = vae.final(vae.decoder(queries, memory, tgt_key_padding_mask=~mask)).masked_fill(~mask[..., None], 0)
+    torch.testing.assert_close(fast, full, rtol=0, atol=1e-6)
+    vae.train()  # training keeps torch's layers (dropout acts per frame there)
+    torch.manual_seed(1)
+    a = vae.decode(z, mask)
+    torch.manual_seed(1)
+    b = vae.final(vae.decoder(queries, memory, tgt_key_padding_mask=~mask)).masked_fill(~mask[..., None], 0)
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+
 @pytest.mark.parametrize("layers", [0, 2, 4, 8])
 def test_even_layer_counts_are_rejected(layers):
     with pytest.raises(ValueError, match="odd"):

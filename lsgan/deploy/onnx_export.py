@@ -273,17 +273,20 @@ def planned_files(src: Sources, int8: bool) -> list[str]:
     return names + (quantised if int8 else []) + [MANIFEST]
 
 
-def build_manifest(src: Sources, folder: Path, graphs: dict, tokenizer: dict | None, int8: bool, opset: int) -> dict:
-    """The manifest (lsgan.deploy.manifest) of what was written; the int8 error is added by :func:`export_onnx`."""
+def build_manifest(src: Sources, folder: Path, graphs: dict, tokenizer: dict | None, quantised: list[str] | None,
+                   opset: int) -> dict:
+    """The manifest (lsgan.deploy.manifest) of what was written (``quantised``: the decoder's int8 nodes, None
+    without --int8); the int8 error is added by :func:`export_onnx`."""
     from lsgan.models.checkpoint import resolve, weights_hash
 
     cfg, extra = src.gan.config, src.gan_meta.get("extra", {})
     fp32 = {g: f"{g}.onnx" for g in graphs}
     variants = {"fp32": {"graphs": fp32}}
-    if int8:
+    if quantised is not None:
         quantisation = {"method": "onnxruntime.quantization.quantize_dynamic", "weight_type": q.WEIGHT_TYPE,
-                        "activations": "QUInt8, scaled per tensor at run time",
-                        "graphs": [g for g in q.QUANTISED if g in graphs]}
+                        "weights": "per output channel", "activations": "QUInt8, scaled per tensor at run time",
+                        "graphs": [g for g in q.QUANTISED if g in graphs],
+                        "nodes": "the decoder's feed-forward products", "quantised_nodes": quantised}
         variants["int8"] = {"graphs": {g: f"{g}.int8.onnx" if g in q.QUANTISED else f for g, f in fp32.items()},
                             "quantisation": quantisation}
     files = {f for v in variants.values() for f in v["graphs"].values()}
@@ -334,12 +337,11 @@ def export_onnx(run: str | os.PathLike, out: str | os.PathLike, *, vae: str | os
     folder.mkdir(parents=True, exist_ok=True)
     graphs = export_graphs(src, folder, opset, progress)
     tokenizer = write_tokenizer(src.encoder, folder) if src.encoder is not None else None
+    quantised = None
     if int8:
-        for g in q.QUANTISED:
-            if g in graphs:
-                progress(f"quantising the {g.replace('_', ' ')} to int8")
-                q.quantise(folder / f"{g}.onnx", folder / f"{g}.int8.onnx")
-    manifest = build_manifest(src, folder, graphs, tokenizer, int8, opset)
+        progress("quantising the decoder's feed-forward products to int8")
+        quantised = q.quantise(folder / "decoder.onnx", folder / "decoder.int8.onnx")
+    manifest = build_manifest(src, folder, graphs, tokenizer, quantised, opset)
     if int8:
         progress("measuring the int8 graphs' joint error against fp32 (100 motions)")
         fp32, int8_ = (OnnxMotionModel(folder, manifest, variant=v, threads=threads, check_files=False)

@@ -3,7 +3,9 @@
 Encoder: Linear(263->d), two learned distribution tokens prepended, positional encoding, a skip
 transformer over [mu_token, logvar_token, frames] with padded frames masked out; the outputs at the two
 tokens are mu and log-variance. Decoder: T query tokens (zeros + positional encoding) self-attend (padded
-frames masked) and cross-attend to z as a one-token memory; Linear(d->263); padded frames set to zero.
+frames masked) and cross-attend to z as a one-token memory; Linear(d->263); padded frames set to zero. In eval
+mode that cross-attention is computed once per motion, not per frame (:func:`one_token_cross`): the same features,
+12.6% fewer FLOPs for the paper-sized decoder.
 
 Skip transformer (MLD): (L-1)/2 input blocks, 1 middle block, (L-1)/2 output blocks; output block i
 takes [h, activations of input block L/2-i] (2d) projected back to d, then a final LayerNorm.
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from lsgan.models.checkpoint import load_weights
@@ -99,16 +102,53 @@ class SkipTransformer(nn.Module):
             if p.dim() > 1:
                 nn.init.xavier_uniform_(p)
 
-    def forward(self, h: torch.Tensor, *args, **kwargs) -> torch.Tensor:
-        """h (B,S,d) -> (B,S,d); args/kwargs go to every layer (memory, padding mask)."""
+    def forward(self, h: torch.Tensor, *args, apply=None, **kwargs) -> torch.Tensor:
+        """h (B,S,d) -> (B,S,d); args/kwargs go to every layer (memory, padding mask), or ``apply(layer, h)`` runs
+        each layer instead."""
+        apply = apply or (lambda layer, x: layer(x, *args, **kwargs))
         skips = []
         for block in self.input_blocks:
-            h = block(h, *args, **kwargs)
+            h = apply(block, h)
             skips.append(h)
-        h = self.middle_block(h, *args, **kwargs)
+        h = apply(self.middle_block, h)
         for block, proj in zip(self.output_blocks, self.skip_proj):
-            h = block(proj(torch.cat([h, skips.pop()], dim=-1)), *args, **kwargs)  # (B,S,2d) -> (B,S,d)
+            h = apply(block, proj(torch.cat([h, skips.pop()], dim=-1)))  # (B,S,2d) -> (B,S,d)
         return self.norm(h)
+
+
+def one_token_cross(attn: nn.MultiheadAttention, memory: torch.Tensor) -> torch.Tensor:
+    """Cross-attention to a one-token memory (B,1,d) -> (B,1,d), the same for every query.
+
+    Softmax over a single key is exactly 1, so each query receives that key's value whatever the query is:
+    out_proj(v_proj(memory)). The query and key projections, and the per-frame value and output products,
+    are skipped (2 of the ~15 d x d products per frame and layer at ff = 4d).
+    """
+    d = attn.embed_dim
+    bias = None if attn.in_proj_bias is None else attn.in_proj_bias[2 * d :]
+    return attn.out_proj(F.linear(memory, attn.in_proj_weight[2 * d :], bias))  # (B,1,d)
+
+
+def decoder_layer_one_token(layer: nn.TransformerDecoderLayer, h: torch.Tensor, memory: torch.Tensor,
+                            pad: torch.Tensor) -> torch.Tensor:
+    """``layer(h, memory, tgt_key_padding_mask=pad)`` in eval mode for a one-token memory, with the cross-attention
+    computed once per sequence (:func:`one_token_cross`). Pre-norm and post-norm layers alike."""
+    if layer.training:
+        raise RuntimeError("the one-token decoder path is for inference (dropout would act per frame)")
+
+    def self_attn(x: torch.Tensor) -> torch.Tensor:
+        return layer.self_attn(x, x, x, key_padding_mask=pad, need_weights=False)[0]
+
+    def feed_forward(x: torch.Tensor) -> torch.Tensor:
+        return layer.linear2(layer.activation(layer.linear1(x)))
+
+    cross = one_token_cross(layer.multihead_attn, memory)  # (B,1,d)
+    if layer.norm_first:
+        h = h + self_attn(layer.norm1(h))
+        h = h + cross
+        return h + feed_forward(layer.norm3(h))
+    h = layer.norm1(h + self_attn(h))
+    h = layer.norm2(h + cross)
+    return layer.norm3(h + feed_forward(h))
 
 
 class MotionVAE(nn.Module):
@@ -151,7 +191,10 @@ class MotionVAE(nn.Module):
         B, T = mask.shape
         memory = self.from_latent(z)[:, None]  # (B,1,d)
         queries = self.dec_pos(memory.new_zeros(B, T, self.config.d_model))  # (B,T,d)
-        h = self.decoder(queries, memory, tgt_key_padding_mask=~mask)  # (B,T,d)
+        if self.training:
+            h = self.decoder(queries, memory, tgt_key_padding_mask=~mask)  # (B,T,d)
+        else:  # the same function, the one-token cross-attention computed once per motion
+            h = self.decoder(queries, apply=lambda layer, x: decoder_layer_one_token(layer, x, memory, ~mask))
         return self.final(h).masked_fill(~mask[..., None], 0.0)  # (B,T,263)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor, sample: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

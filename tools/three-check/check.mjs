@@ -11,19 +11,12 @@ import fs from 'node:fs';
 import http from 'node:http';
 import path from 'node:path';
 import { fileURLToPath } from 'node:url';
-import { chromium } from 'playwright-core';
+import { openPage } from './browser.mjs';
 
 const HERE = path.dirname(fileURLToPath(import.meta.url));
 const THREE_DIR = path.join(HERE, 'node_modules', 'three');
 const WIDTH = 960;
 const HEIGHT = 720;
-// Headless without GPU or network: no sandbox (root in CI), software WebGL (SwiftShader), and none of the
-// background services that would try connections the CI network refuses.
-const CHROMIUM_ARGS = [
-  '--headless', '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
-  '--disable-background-networking', '--disable-component-update', '--disable-sync',
-  '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
-];
 const TYPES = { '.html': 'text/html', '.js': 'text/javascript', '.glb': 'model/gltf-binary' };
 const PAGE = `<!doctype html>
 <html><head><meta charset="utf-8"><link rel="icon" href="data:,"><title>lsgan three-check</title>
@@ -100,9 +93,6 @@ async function check(opts, cleanup) {
   if (!fs.existsSync(path.join(THREE_DIR, 'build', 'three.module.js'))) {
     throw new Error(`three.js is not installed in ${HERE}: run \`npm ci\` there`);
   }
-  if (!fs.existsSync(opts.chromium)) {
-    throw new Error(`no Chromium at ${opts.chromium}: install it with \`apt-get install -y chromium chromium-driver\``);
-  }
   const missing = [];
   const pageErrors = [];
   let broken;
@@ -115,16 +105,8 @@ async function check(opts, cleanup) {
   cleanup.push(() => new Promise((resolve) => { server.closeAllConnections(); server.close(resolve); }));
   const base = `http://127.0.0.1:${server.address().port}`;
 
-  let browser;
-  try {
-    browser = await chromium.launch({ executablePath: opts.chromium, headless: true, args: CHROMIUM_ARGS,
-      timeout: opts.timeout * 1000 });
-  } catch (err) {
-    throw new Error(`could not start Chromium (${opts.chromium}): ${err.message}`);
-  }
+  const { browser, page } = await openPage(opts, WIDTH, HEIGHT);
   cleanup.unshift(() => browser.close());
-  const page = await browser.newPage({ viewport: { width: WIDTH, height: HEIGHT } });
-  page.setDefaultTimeout(opts.timeout * 1000);
   page.on('pageerror', (err) => {
     pageErrors.push(err.message);
     broken(new Error('the page threw'));

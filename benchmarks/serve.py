@@ -1,0 +1,217 @@
+"""Load on ``lsgan serve``: 1, 8 and 32 concurrent clients, then the same work one request at a time in-process.
+
+Starts a real server (a subprocess, 127.0.0.1 only, a free port) on demo-size models (``--gan/--vae``, e.g. a
+Bandai-Namco run, which has recipes/demo.yaml's sizes; without them, demo-size models are made in a few seconds
+with two training steps each: their speed is the trained ones', their motions are noise). Each client is a
+thread with a keep-alive connection that sends POST /v1/generate (a prompt from a fixed list, ``--frames``, a
+random seed) as soon as its previous answer has arrived, for ``--seconds`` per level. Reported per level:
+requests/s, latency p50/p95/p99 (send to last byte), errors (anything but a 200, or a failed connection), the
+mean engine batch size, and the server's peak memory so far (VmHWM). Then ``engine.run`` of the same kind of
+request one at a time in this process, for as long. The 1-minute load average is printed at the start and the end.
+
+    python benchmarks/serve.py --gan runs/bandai-gan --vae runs/bandai-vae
+    python benchmarks/serve.py --clients 1,8,32 --seconds 20 --json serve.json
+"""
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import platform
+import random
+import re
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PROMPTS = [
+    "a person walks forward", "a person runs forward", "a person waves their right hand", "a person jumps up",
+    "a person does a squat", "a person walks happily", "a person walks tiredly with the head down",
+    "someone raises both hands above the head", "a person kicks with the left leg", "a person turns around",
+    "a man walks in a circle and then stops", "a person dances with both arms moving",
+    "a woman walks forward proudly", "someone steps to the side and back", "a person bows politely",
+    "a person punches forward with the right hand",
+]
+
+
+def lsgan(*args, cwd: Path) -> None:
+    out = subprocess.run([sys.executable, "-m", "lsgan.cli", *map(str, args)], cwd=cwd, capture_output=True, text=True)
+    if out.returncode:
+        sys.exit(f"lsgan {args[0]} failed: {out.stderr.strip().splitlines()[-1:]}")
+
+
+def demo_size_models(d: Path) -> tuple[Path, Path]:
+    """A VAE and a GAN with recipes/demo.yaml's sizes after two training steps each (speed only)."""
+    recipe = ROOT / "recipes" / "demo.yaml"
+    lsgan("preprocess", "--source", "synthetic", "--num-clips", 40, "-o", "synth.h5", cwd=d)
+    lsgan("train-vae", "--data", "synth.h5", "--recipe", recipe, "--out", "vae", "--max-steps", 2, cwd=d)
+    lsgan("encode-latents", "--data", "synth.h5", "--vae", "vae", "-o", "cache.h5", cwd=d)
+    lsgan("train-gan", "--cache", "cache.h5", "--recipe", recipe, "--out", "gan", "--max-steps", 2, cwd=d)
+    return d / "gan", d / "vae"
+
+
+class Server:
+    """``lsgan serve`` on 127.0.0.1, a free port."""
+
+    def __init__(self, gan: Path, vae: Path, extra: list[str]) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "lsgan.cli", "serve", "--gan", str(gan), "--vae", str(vae),
+                                      "--host", "127.0.0.1", "--port", "0", *extra], stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        threading.Thread(target=lambda: [self.lines.append(x.rstrip()) for x in self.proc.stderr], daemon=True).start()
+        deadline = time.monotonic() + 300
+        while not (found := [m for x in list(self.lines) if (m := re.search(r"http://[^ ]*:(\d+)/ ", x))]):
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.proc.kill()
+                sys.exit("the server did not start:\n" + "\n".join(self.lines))
+            time.sleep(0.1)
+        self.port = int(found[0].group(1))
+
+    def peak_rss_mb(self) -> float:
+        text = Path(f"/proc/{self.proc.pid}/status").read_text()
+        return int(re.search(r"VmHWM:\s+(\d+) kB", text).group(1)) / 1024
+
+    def cpu_s(self) -> float:
+        """CPU seconds the server has used (all its threads)."""
+        fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def stop(self) -> int:
+        self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(60)
+
+
+def prompt(rng: random.Random, unique: bool) -> str:
+    """One of PROMPTS, or with --unique-prompts a sentence never sent before (no prompt cache hit)."""
+    return f"{rng.choice(PROMPTS)}, take {rng.randrange(10**9)}" if unique else rng.choice(PROMPTS)
+
+
+def client(port: int, frames: int, until: float, rng: random.Random, out: dict, unique: bool) -> None:
+    """Requests back to back on one keep-alive connection until ``until``; latencies and errors into ``out``."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    while time.perf_counter() < until:
+        body = json.dumps({"text": prompt(rng, unique), "frames": frames, "seed": rng.randrange(2**31)})
+        t0 = time.perf_counter()
+        try:
+            conn.request("POST", "/v1/generate", body, {"Content-Type": "application/json"})
+            resp = conn.getresponse()
+            data = resp.read()
+            ok = resp.status == 200
+        except (OSError, http.client.HTTPException):
+            conn.close()
+            conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+            ok, data = False, b""
+        out["latencies"].append(time.perf_counter() - t0)
+        if ok:
+            batch = re.search(rb'"batch_size":(\d+)}$', data)
+            out["batches"].append(int(batch.group(1)) if batch else 0)
+        else:
+            out["errors"] += 1
+    conn.close()
+
+
+def percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q / 100 * len(ordered)) - 1))] if ordered else float("nan")
+
+
+def level(server: Server, clients: int, seconds: float, frames: int, seed: int, unique: bool) -> dict:
+    """``clients`` concurrent clients for ``seconds``: throughput, latency percentiles, errors, peak memory."""
+    outs = [{"latencies": [], "batches": [], "errors": 0} for _ in range(clients)]
+    server_cpu, own_cpu = server.cpu_s(), sum(os.times()[:2])
+    start = time.perf_counter()
+    threads = [threading.Thread(target=client, args=(server.port, frames, start + seconds,
+                                                     random.Random(seed * 1000 + i), outs[i], unique))
+               for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    elapsed = time.perf_counter() - start
+    server_cpu, own_cpu = server.cpu_s() - server_cpu, sum(os.times()[:2]) - own_cpu
+    lat = [x for o in outs for x in o["latencies"]]
+    batches = [x for o in outs for x in o["batches"]]
+    return {"clients": clients, "requests": len(lat), "seconds": elapsed, "rps": len(lat) / elapsed,
+            "p50_ms": 1e3 * percentile(lat, 50), "p95_ms": 1e3 * percentile(lat, 95),
+            "p99_ms": 1e3 * percentile(lat, 99), "errors": sum(o["errors"] for o in outs),
+            "mean_batch": statistics.fmean(batches) if batches else 0.0, "server_peak_rss_mb": server.peak_rss_mb(),
+            "server_cpu_cores": server_cpu / elapsed, "client_cpu_cores": own_cpu / elapsed}
+
+
+def in_process(gan: Path, vae: Path, seconds: float, frames: int, unique: bool) -> dict:
+    """``engine.run`` of one request at a time in this process, for ``seconds`` (the server's prompt cache too)."""
+    from lsgan.serve.engine import Item, load_engine
+
+    engine = load_engine(gan=str(gan), vae=str(vae))
+    rng, lat = random.Random(1), []
+    until = time.perf_counter() + seconds
+    start = time.perf_counter()
+    while time.perf_counter() < until:
+        t0 = time.perf_counter()
+        engine.run([Item(text=prompt(rng, unique), frames=frames, seed=rng.randrange(2**31))])
+        lat.append(time.perf_counter() - t0)
+    elapsed = time.perf_counter() - start
+    return {"requests": len(lat), "seconds": elapsed, "rps": len(lat) / elapsed, "p50_ms": 1e3 * percentile(lat, 50),
+            "p95_ms": 1e3 * percentile(lat, 95), "p99_ms": 1e3 * percentile(lat, 99)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--gan", type=Path, help="GAN run (default: demo-size models made for the benchmark)")
+    parser.add_argument("--vae", type=Path)
+    parser.add_argument("--clients", default="1,8,32", help="concurrent clients per level, comma-separated")
+    parser.add_argument("--seconds", type=float, default=20.0, help="per level, and for the in-process run")
+    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--unique-prompts", action="store_true",
+                        help="every request a sentence never sent before (default: the 16 of PROMPTS, which the "
+                             "server's prompt-embedding cache then holds)")
+    parser.add_argument("--server-args", default="", help="more `lsgan serve` options, e.g. '--gather-ms 2'")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    args = parser.parse_args()
+    if (args.gan is None) != (args.vae is None):
+        parser.error("give both --gan and --vae, or neither")
+    levels = [int(c) for c in args.clients.split(",")]
+    load_start = os.getloadavg()[0]
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; load average (1 min) "
+          f"at start {load_start:.2f}", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        gan, vae = (args.gan, args.vae) if args.gan else demo_size_models(Path(tmp))
+        server = Server(gan, vae, args.server_args.split())
+        try:
+            level(server, 2, 2.0, args.frames, seed=0, unique=args.unique_prompts)  # warm-up
+            rows = []
+            for n in levels:
+                rows.append(level(server, n, args.seconds, args.frames, seed=n, unique=args.unique_prompts))
+                r = rows[-1]
+                print(f"{n:>3} clients: {r['rps']:7.1f} req/s  p50 {r['p50_ms']:6.1f}  p95 {r['p95_ms']:6.1f}  "
+                      f"p99 {r['p99_ms']:6.1f} ms  errors {r['errors']}  mean batch {r['mean_batch']:.1f}  "
+                      f"server peak RSS {r['server_peak_rss_mb']:.0f} MB  CPU: server {r['server_cpu_cores']:.2f}, "
+                      f"clients {r['client_cpu_cores']:.2f} cores", flush=True)
+        finally:
+            code = server.stop()
+        seq = in_process(gan, vae, args.seconds, args.frames, args.unique_prompts)
+    print(f"in-process, one request at a time (engine.run): {seq['rps']:.1f} req/s  p50 {seq['p50_ms']:.1f}  "
+          f"p95 {seq['p95_ms']:.1f}  p99 {seq['p99_ms']:.1f} ms")
+    best = max(rows, key=lambda r: r["clients"])
+    print(f"{best['clients']} clients over HTTP: {best['rps'] / rows[0]['rps']:.2f}x the {rows[0]['clients']}-client "
+          f"rate, {best['rps'] / seq['rps']:.2f}x sequential in-process; server exit code {code}")
+    load_end = os.getloadavg()[0]
+    print(f"load average (1 min) at end {load_end:.2f}")
+    if args.json:
+        args.json.write_text(json.dumps({
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+            "load_average_1min": {"start": load_start, "end": load_end}, "frames": args.frames,
+            "prompts": "unique" if args.unique_prompts else f"{len(PROMPTS)} repeated",
+            "seconds": args.seconds,
+            "models": {"gan": str(args.gan or "demo-size, untrained"), "vae": str(args.vae or "")},
+            "levels": rows, "in_process": seq, "server_exit_code": code}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""A POST /v1/generate body -> an engine :class:`Item`, or an :class:`ApiError` with a one-line reason."""
+from __future__ import annotations
+
+import json
+import secrets
+import unicodedata
+
+from pydantic import ValidationError
+
+from lsgan.serve.engine import Engine, Item
+from lsgan.serve.limits import Limits
+from lsgan.serve.schemas import GenerateRequest
+
+FIELDS = ", ".join(GenerateRequest.model_fields)
+ALLOWED_CONTROLS = "\t\n\r"  # whitespace a pasted prompt may hold; the tokenizer reads it as spaces
+DRAWN_SEEDS = 2**31  # a seed the server draws is below this
+
+
+class ApiError(Exception):
+    """An answer other than 200: status, one-line reason, extra headers."""
+
+    def __init__(self, status: int, message: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.status, self.message, self.headers = status, message, headers or {}
+
+
+JSON_TYPES = {"NoneType": "null", "str": "string", "dict": "object", "list": "array", "int": "integer",
+              "float": "number", "bool": "boolean"}
+
+
+def json_type(value) -> str:
+    """The JSON name of a parsed value's type."""
+    return JSON_TYPES.get(type(value).__name__, type(value).__name__)
+
+
+def short(value, limit: int = 40) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for echoing a client's value in a message."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def parse_json(body: bytes) -> dict:
+    """The body as a JSON object; 400 for malformed JSON (NaN and Infinity included), 422 for another type."""
+    def no_constants(name: str):
+        raise ValueError(f"{name} is not JSON")
+
+    if not body.strip():
+        raise ApiError(400, "empty body: send a JSON object such as {\"text\": \"a person walks forward\"}")
+    try:
+        obj = json.loads(body, parse_constant=no_constants)
+    except RecursionError:
+        raise ApiError(400, "malformed JSON: nested too deeply") from None
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError (not UTF-8), NaN / Infinity
+        raise ApiError(400, f"malformed JSON: {str(e).splitlines()[0][:200]}") from None
+    if not isinstance(obj, dict):
+        raise ApiError(422, f"the body must be a JSON object such as {{\"text\": \"a person walks\"}}, "
+                            f"not a {json_type(obj)}")
+    return obj
+
+
+def _validation_message(error: ValidationError) -> str:
+    """pydantic's first error as one line: the field, then what is wrong with it."""
+    e = error.errors()[0]
+    where = ".".join(str(p) for p in e["loc"]) or "body"
+    if e["type"] == "extra_forbidden":
+        return f"{where}: unknown field (the fields are {FIELDS})"
+    got = json_type(e["input"]) if "input" in e else ""
+    msg = e["msg"][0].lower() + e["msg"][1:]
+    return f"{where}: {msg}" + (f", got {got}" if got and e["type"].endswith("_type") else "")
+
+
+def check_text(text: str, limits: Limits) -> str:
+    """The prompt, stripped; refused when empty, too long, or holding control characters or lone surrogates."""
+    bad = next((c for c in text if (unicodedata.category(c) == "Cc" and c not in ALLOWED_CONTROLS)
+                or unicodedata.category(c) == "Cs"), None)
+    if bad is not None:
+        kind = "a lone surrogate" if unicodedata.category(bad) == "Cs" else "a control character"
+        raise ApiError(422, f"text holds {kind} (U+{ord(bad):04X}); send printable text")
+    stripped = text.strip()
+    if not stripped:
+        raise ApiError(422, "text is empty: describe a motion, e.g. \"a person walks forward\"")
+    if len(text) > limits.max_text_chars:
+        raise ApiError(422, f"text is {len(text)} characters long; the limit is {limits.max_text_chars}")
+    return stripped
+
+
+def to_item(obj: dict, engine: Engine, limits: Limits) -> Item:
+    """The request as an engine item, every field checked against the model and the limits."""
+    try:
+        req = GenerateRequest.model_validate(obj)
+    except ValidationError as e:
+        raise ApiError(422, _validation_message(e)) from None
+    if (req.text is None) == (req.action is None):
+        raise ApiError(422, "give exactly one of \"text\" and \"action\""
+                       f" (this model is {engine.condition}-conditioned)")
+    if engine.condition == "text" and req.text is None:
+        raise ApiError(422, "this model is conditioned on text: give \"text\", not \"action\"")
+    if engine.condition == "action" and req.action is None:
+        raise ApiError(422, f"this model is conditioned on actions: give \"action\", one of {engine.actions}")
+    text = check_text(req.text, limits) if req.text is not None else None
+    if req.action is not None and req.action not in engine.actions:
+        raise ApiError(422, f"unknown action {short(req.action)}; this model knows {engine.actions}")
+    frames = limits.default_frames if req.frames is None else req.frames
+    if not limits.min_frames <= frames <= limits.max_frames:
+        raise ApiError(422, f"frames must be {limits.min_frames} to {limits.max_frames}, got {short(frames)}")
+    if not 1 <= req.num <= limits.max_num:
+        raise ApiError(422, f"num must be 1 to {limits.max_num}, got {short(req.num)}")
+    seed = secrets.randbelow(DRAWN_SEEDS) if req.seed is None else req.seed
+    return Item(text=text, action=req.action, frames=frames, num=req.num, seed=seed)

@@ -1,0 +1,161 @@
+"""The models of ``lsgan serve``, loaded once, behind one small interface: ``engine.run(items)``.
+
+Two backends: :class:`TorchEngine` (a GAN and its VAE, the pass of :func:`lsgan.generate.run_models`) and
+:class:`OnnxEngine` (an ``export-model`` folder, :class:`lsgan.deploy.runtime.OnnxMotionModel`). Each item of a
+pass draws its noise from its own seed exactly as ``lsgan generate --seed SEED --num NUM`` draws it for that one
+request (torch's generator, or numpy's for ONNX), so a motion does not depend on what it was batched with.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lsgan.data.features import recover_from_ric
+from lsgan.data.skeleton import FPS
+from lsgan.generation import Request
+
+
+@dataclass(frozen=True)
+class Item:
+    """One request of a pass: a prompt or an action label, its length, how many motions, and their seed."""
+
+    text: str | None = None
+    action: str | None = None
+    frames: int = 120
+    num: int = 1
+    seed: int = 0
+
+    @property
+    def request(self) -> Request:
+        return Request(text=self.text, action=self.action, frames=self.frames)
+
+
+@dataclass
+class Result:
+    """An item's motions (``num`` joint arrays (T, 22, 3) float32, metres) and the pass that made them."""
+
+    joints: list[np.ndarray]
+    timings_ms: dict[str, float] = field(default_factory=dict)  # the pass's: text, generator, decoder
+    batch_size: int = 1  # motions in the pass
+
+
+def _ms(timings_s: dict[str, float]) -> dict[str, float]:
+    return {"text": 1e3 * timings_s.get("text_encoding", 0.0), "generator": 1e3 * timings_s.get("generator", 0.0),
+            "decoder": 1e3 * timings_s.get("vae_decoding", 0.0)}
+
+
+def _results(items: list[Item], joints: list[np.ndarray], timings_s: dict[str, float]) -> list[Result]:
+    """Split a pass's motions (items' motions in order) back into one Result per item."""
+    out, k, n = [], 0, len(joints)
+    for it in items:
+        out.append(Result(joints=joints[k:k + it.num], timings_ms=_ms(timings_s), batch_size=n))
+        k += it.num
+    return out
+
+
+class Engine:
+    """What the server needs of a model: its condition, actions and frame bound, and ``run(items)``."""
+
+    backend = ""
+    condition = "text"  # or "action"
+    actions: list[str] = []
+    fps: float = float(FPS)
+    max_frames: int = 196
+    load_s = 0.0  # seconds to load and warm up
+
+    def run(self, items: list[Item]) -> list[Result]:
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        return f"{self.backend}, {self.condition}-conditioned, up to {self.max_frames} frames"
+
+
+class TorchEngine(Engine):
+    """A latent GAN and its VAE (``--gan RUN --vae RUN``)."""
+
+    backend = "torch"
+
+    def __init__(self, gan: str | os.PathLike, vae: str | os.PathLike, *, device: str = "auto",
+                 text_encoder_path: str | None = None, batch_size: int = 256, text_cache: int = 1024) -> None:
+        from lsgan.generate import load_models
+        from lsgan.serve.textcache import CachedTextEncoder
+
+        self.loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path)
+        if self.loaded.encoder is not None and text_cache > 0:
+            self.loaded.encoder = CachedTextEncoder(self.loaded.encoder, text_cache)
+        if self.loaded.meta["kind"] != "gan":
+            raise ValueError(f"{gan}: lsgan serve runs latent GANs; this is a {self.loaded.meta['kind']} checkpoint")
+        cfg = self.loaded.model.config
+        self.condition = cfg.cond
+        self.actions = list(self.loaded.meta.get("extra", {}).get("action_names", [])) if cfg.cond == "action" else []
+        self.max_frames = self.loaded.max_frames
+        self.batch_size = batch_size
+        import torch
+
+        from lsgan.threads import ThreadPolicy
+
+        # one policy for the server's life, re-measuring every 0.5 s the cores other processes leave free (a fresh
+        # one per pass would judge by the runnable tasks of one instant); on a GPU, torch's own count
+        self.threads = ThreadPolicy(threads=None if self.loaded.device.type == "cpu" else torch.get_num_threads())
+
+    def run(self, items: list[Item]) -> list[Result]:
+        import torch
+
+        from lsgan.generate import draw_noise, noise_dim, run_models
+
+        dim = noise_dim(self.loaded.model, self.loaded.meta)
+        noise = torch.cat([draw_noise(it.seed, it.num, dim)[0] for it in items])
+        feats, timings, _ = run_models(self.loaded, [it.request for it in items], [it.num for it in items], noise,
+                                       batch_size=self.batch_size, threads=self.threads)
+        return _results(items, [recover_from_ric(f.astype(np.float32)) for f in feats], timings)
+
+
+class OnnxEngine(Engine):
+    """An ``lsgan export-model --onnx`` folder run by onnxruntime (``--model DIR``)."""
+
+    backend = "onnx"
+
+    def __init__(self, folder: str | os.PathLike, *, variant: str = "fp32", threads: int | None = None,
+                 batch_size: int = 256) -> None:
+        from lsgan.deploy.runtime import load
+
+        self.model = load(folder, variant=variant, threads=threads)
+        self.condition = self.model.manifest["condition"]
+        self.actions = list(self.model.manifest.get("action_names", [])) if self.condition == "action" else []
+        self.max_frames = self.model.max_frames
+        self.batch_size = batch_size
+
+    def run(self, items: list[Item]) -> list[Result]:
+        from lsgan.deploy.runtime import draw_noise
+
+        dim = int(self.model.manifest["noise_dim"])
+        noise = np.concatenate([draw_noise(it.seed, it.num, dim) for it in items])
+        requests = [it.request for it in items for _ in range(it.num)]  # one row of noise each, in order
+        result = self.model.generate(requests, noise=noise, batch_size=self.batch_size)
+        return _results(items, [m.joints.astype(np.float32) for m in result.motions], result.timings_s)
+
+
+def load_engine(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
+                device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024) -> Engine:
+    """The torch engine (``gan`` and ``vae``; ``text_cache`` prompt embeddings kept) or the ONNX one (``model``),
+    warmed up by one short pass."""
+    t0 = time.perf_counter()
+    if model is not None:
+        if gan or vae or text_encoder_path:
+            raise ValueError("give an exported folder (--model) or checkpoints (--gan and --vae), not both")
+        engine: Engine = OnnxEngine(model, variant="int8" if int8 else "fp32")
+    else:
+        if not gan or not vae:
+            raise ValueError("give --gan RUN and --vae RUN (or --model EXPORT_DIR)")
+        if int8:
+            raise ValueError("--int8 goes with --model (an ONNX export made with --int8)")
+        engine = TorchEngine(gan, vae, device=device, text_encoder_path=text_encoder_path, text_cache=text_cache)
+    warm = Item(text="a person walks forward" if engine.condition == "text" else None,
+                action=engine.actions[0] if engine.condition == "action" and engine.actions else None,
+                frames=min(40, engine.max_frames))
+    engine.run([warm])
+    engine.load_s = time.perf_counter() - t0
+    return engine

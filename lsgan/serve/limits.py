@@ -1,0 +1,57 @@
+"""The bounds ``lsgan serve`` holds every request to, in one place (each is a command-line option)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+MAX_SEED = 2**53 - 1  # the largest integer a JavaScript client can send back exactly
+TRAINED_FRAMES = 196  # HumanML3D's longest clip: the default bound of a model that could decode longer
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What one request may ask and how much the server takes on at once."""
+
+    max_text_chars: int = 500  # characters of a prompt (MiniLM reads at most 256 tokens of it anyway)
+    min_frames: int = 4  # `lsgan generate` refuses fewer too
+    max_frames: int | None = None  # None: the model's own maximum (its VAE's positional table), at most 196
+    default_frames: int | None = None  # None: 120, or max_frames when less
+    max_num: int = 8  # motions per request
+    max_body_bytes: int = 16384  # of a request body
+    max_in_flight: int = 64  # requests admitted and not yet answered; more get 503 with Retry-After
+    timeout_s: float = 10.0  # per request, from admission to its motions; then 503
+    gather_ms: float = 5.0  # how long a pass waits for more requests after the first one
+    max_batch: int = 32  # motions in one engine pass
+    store_size: int = 256  # motions kept for download (least recently used are dropped)
+
+    def checked(self, model_max_frames: int) -> Limits:
+        """These limits with the model's frame bounds filled in; a ValueError when they contradict each other or
+        the model."""
+        if self.max_frames is None:
+            self = replace(self, max_frames=min(TRAINED_FRAMES, model_max_frames))
+        if self.default_frames is None:
+            self = replace(self, default_frames=min(120, self.max_frames))
+        problems = [name for name, ok in (
+            ("max_text_chars", self.max_text_chars >= 1),
+            ("min_frames", 1 <= self.min_frames <= self.max_frames),
+            ("max_num", self.max_num >= 1),
+            ("max_body_bytes", self.max_body_bytes >= 64),
+            ("max_in_flight", self.max_in_flight >= 1),
+            ("timeout_s", self.timeout_s > 0),
+            ("gather_ms", 0 <= self.gather_ms <= 1000),
+            ("max_batch", self.max_batch >= self.max_num),
+            ("store_size", self.store_size >= self.max_num),
+        ) if not ok]
+        if problems:
+            raise ValueError(f"inconsistent limits: {', '.join(problems)} ({self.describe()})")
+        if self.max_frames > model_max_frames:
+            raise ValueError(f"max frames {self.max_frames} is more than this model decodes ({model_max_frames}, "
+                             "its VAE's positional table)")
+        if not self.min_frames <= self.default_frames <= self.max_frames:
+            raise ValueError(f"default frames {self.default_frames} is outside {self.min_frames}..{self.max_frames}")
+        return self
+
+    def describe(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in asdict(self).items())
+
+    def as_dict(self) -> dict:
+        return asdict(self)

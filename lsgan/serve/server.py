@@ -1,0 +1,93 @@
+"""``lsgan serve``: load the models once, then run the API under uvicorn until SIGTERM or Ctrl-C.
+
+SIGTERM stops accepting connections, lets the requests in flight finish (uvicorn's graceful shutdown), stops the
+engine's worker and returns normally, so the command exits 0. Ctrl-C does the same and then exits 130, as every
+lsgan command does.
+"""
+from __future__ import annotations
+
+import gc
+import ipaddress
+import logging
+import signal
+import socket
+import sys
+from collections.abc import Callable
+
+from lsgan.serve.engine import load_engine
+from lsgan.serve.limits import Limits
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` only listens on this machine (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def listen(host: str, port: int) -> socket.socket:
+    """A socket bound to ``host:port`` (port 0: a free one); a one-line OSError when that is not possible."""
+    try:
+        infos = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise OSError(f"{host}: not an address or host name this machine knows ({e.strerror})") from None
+    family, kind, proto, _, address = infos[0]
+    sock = socket.socket(family, kind, proto)  # proto TCP: asyncio then sets TCP_NODELAY on each connection
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind(address)
+    except OSError as e:
+        sock.close()
+        raise OSError(f"{host}:{port}: cannot listen there ({(e.strerror or str(e)).lower()})") from None
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
+          host: str = "127.0.0.1", port: int = 8000, api_key: str | None = None, limits: Limits | None = None,
+          device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024,
+          say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True)) -> None:
+    """Serve ``--gan/--vae`` checkpoints or an ONNX ``--model`` folder on ``host:port`` until stopped."""
+    try:
+        import uvicorn
+
+        from lsgan.serve.app import create_app
+    except ImportError as e:
+        raise RuntimeError(f"lsgan serve needs FastAPI and uvicorn ({e.name} is missing): "
+                           "pip install 'lsgan[serve]'") from None
+
+    if not 0 <= port <= 65535:
+        raise ValueError(f"port {port} is not a TCP port (0 to 65535)")
+    if api_key is not None and not api_key.strip():
+        raise ValueError("the API key is empty")
+    sock = listen(host, port)  # first: a port in use fails before minutes of loading
+    try:
+        engine = load_engine(gan=gan, vae=vae, model=model, int8=int8, device=device,
+                             text_encoder_path=text_encoder_path, text_cache=text_cache)
+        limits = (limits or Limits()).checked(engine.max_frames)
+    except BaseException:
+        sock.close()
+        raise
+    if not is_loopback(host):
+        say(f"warning: listening on {host}: other machines can reach this server"
+            + ("" if api_key else " and use it without a key (--api-key)"))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(engine, limits, api_key=api_key), log_level="warning",
+                                           access_log=False, timeout_graceful_shutdown=limits.timeout_s + 5,
+                                           server_header=False))
+    gc.collect()
+    gc.freeze()  # the models' objects stay out of every later collection: no full-GC pause of ~100 ms mid-request
+    sock.listen(2048)  # from here connections wait in the backlog until uvicorn accepts them
+    url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
+    say(f"lsgan serve: {engine.describe()}, loaded in {engine.load_s:.1f} s; {url} (API /v1, docs {url}docs); "
+        f"{'API key required' if api_key else 'no API key'}; Ctrl-C or SIGTERM stops")
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    previous = signal.signal(signal.SIGTERM, lambda sig, frame: None)  # uvicorn re-raises it after draining
+    try:
+        server.run(sockets=[sock])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    say("lsgan serve: stopped")
