@@ -737,6 +737,12 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
                        f"max {item.fit_max_error_mm:.1f} mm; parameters in {item.params}", err=True)
     shown = ", ".join(str(d.path) for d in done[:3]) + (" ..." if len(done) > 3 else "")
     click.echo(f"wrote {len(done)} {fmt.upper()} file(s): {shown}", err=True)
+    if fmt in ("glb", "bvh") and done:
+        from lsgan.export.blender import blender_hint
+
+        longest = max(d.frames for d in done)
+        click.echo(blender_hint(fmt, fps, longest) + ("" if len(done) == 1 else f" (the longest, {longest} frames)"),
+                   err=True)
 
 
 @main.command(epilog="""\b

@@ -3,10 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gltf_reader import accessor, frame_count, parse, validate, world_matrices
+from gltf_reader import accessor, frame_count, parse, skinned_vertices, validate, world_matrices
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from lsgan.data.synthetic import generate
+from lsgan.export.bvh import CHILDREN
 from lsgan.export.glb import joints_to_glb, write_glb
 
 
@@ -36,9 +37,13 @@ def test_glb_container_and_json(clips):
     for k, joint_name in enumerate(JOINT_NAMES):
         if PARENTS[k] >= 0:
             assert parent[index[joint_name]] == index[JOINT_NAMES[PARENTS[k]]]
-        assert "mesh" in doc["nodes"][index[joint_name]]
+        assert "mesh" not in doc["nodes"][index[joint_name]]  # the joints are a skin's, not rigid meshes
     root = doc["scenes"][doc["scene"]]["nodes"]
-    assert len(root) == 1 and doc["nodes"][root[0]]["children"] == [index["pelvis"]]
+    assert len(root) == 2 and doc["nodes"][root[0]]["children"] == [index["pelvis"]]
+    (skin,) = doc["skins"]
+    mesh_node = doc["nodes"][root[1]]
+    assert mesh_node["skin"] == 0 and "children" not in mesh_node and "translation" not in mesh_node
+    assert skin["joints"] == [index[n] for n in JOINT_NAMES] and skin["skeleton"] == index["pelvis"]
 
     (anim,) = doc["animations"]
     paths = [(ch["target"]["node"], ch["target"]["path"]) for ch in anim["channels"]]
@@ -78,12 +83,40 @@ def test_animation_reproduces_joints(clips, clip_index):
     assert error < 1e-3, error
 
 
+@pytest.mark.parametrize("clip_index", [0, 1])
+def test_skinned_mesh_follows_the_joints(clips, clip_index):
+    """glTF's skinning formula puts every joint's sphere (its first 42 vertices, an icosphere) around that joint
+    at every frame, and the bones' capsules between the joints they join."""
+    joints = clips[clip_index].joints
+    doc, blob = parse(joints_to_glb(joints, fps=20.0))
+    mesh_node = doc["scenes"][0]["nodes"][1]
+    prim = doc["meshes"][0]["primitives"][0]
+    bound = accessor(doc, blob, prim["attributes"]["JOINTS_0"])[:, 0]
+    weights = accessor(doc, blob, prim["attributes"]["WEIGHTS_0"])
+    np.testing.assert_array_equal(weights[:, 0], 1.0)
+    assert sorted(set(bound.tolist())) == list(range(NUM_JOINTS))
+    for frame in (0, len(joints) // 2, len(joints) - 1):
+        verts = skinned_vertices(doc, blob, frame, mesh_node=mesh_node)
+        for k in range(NUM_JOINTS):
+            sphere = verts[np.flatnonzero(bound == k)[:42]]
+            assert np.abs(sphere.mean(axis=0) - joints[frame, k]).max() < 1e-3
+            assert np.linalg.norm(sphere - joints[frame, k], axis=1).max() < 0.021  # JOINT_RADIUS, placed right
+        verts_of = {k: verts[np.flatnonzero(bound == k)[42:]] for k in range(NUM_JOINTS)}
+        for c, p in enumerate(PARENTS):  # each bone's capsule lies along the segment from its joint to the child
+            if p < 0 or len(CHILDREN[p]) != 1:
+                continue
+            seg = joints[frame, c] - joints[frame, p]
+            rel = verts_of[p] - joints[frame, p]
+            along = rel @ seg / (seg @ seg)
+            assert along.min() > -0.1 and along.max() < 1.1
+
+
 def test_write_glb_loads_in_trimesh(tmp_path, clips):
     trimesh = pytest.importorskip("trimesh")
     path = write_glb(tmp_path / "out" / "clip.glb", clips[0].joints, fps=30.0)
     assert path.exists() and not list(path.parent.glob("*.tmp"))
     scene = trimesh.load(path, force="scene")
-    assert len(scene.geometry) == NUM_JOINTS
+    assert len(scene.geometry) == 1  # one skinned mesh
     assert set(JOINT_NAMES) <= set(scene.graph.nodes)
     doc, _ = parse(path.read_bytes())
     assert doc["extras"]["fps"] == 30.0

@@ -54,6 +54,40 @@ def test_gif_duration_follows_fps(tmp_path, joints):
         assert im.info["duration"] == 100
 
 
+def _delays(path) -> list[int]:
+    """Each frame's delay (ms) as Pillow reads it back."""
+    with Image.open(path) as im:
+        out = []
+        for k in range(im.n_frames):
+            im.seek(k)
+            out.append(im.info["duration"])
+        return out
+
+
+@pytest.mark.parametrize("fps", [20, 24, 25, 30, 60, 120])
+def test_gif_lasts_as_long_as_the_motion(tmp_path, joints, fps):
+    """Read back, the delays add up to frames / fps (to the 10 ms a GIF holds), none is under 20 ms (browsers
+    play shorter ones as 100 ms), and no frame is shown 10 ms longer than its neighbours on average."""
+    motion = np.concatenate([joints, joints[::-1]])  # 48 frames
+    delays = _delays(write_gif(tmp_path / f"m{fps}.gif", motion, fps=float(fps), size=64))
+    assert sum(delays) == 10 * round(100 * len(motion) / fps)
+    assert min(delays) >= 20 and max(delays) - min(delays) <= 10
+    if fps <= 50:
+        assert len(delays) == len(motion)  # every frame kept
+    else:
+        assert len(delays) == int(len(motion) * 50 / fps)  # resampled to 50 fps
+
+
+def test_gif_timing_resamples_in_time_order():
+    positions, delays = preview.gif_timing(120, 60.0)
+    assert len(positions) == 100 and positions[0] == 0 and np.all(np.diff(positions) == pytest.approx(1.2))
+    assert delays == [20] * 100
+    positions, delays = preview.gif_timing(99, 30.0)
+    assert np.array_equal(positions, np.arange(99)) and sum(delays) == 3300
+    moved = preview.resample(np.arange(3 * 22 * 3, dtype=float).reshape(3, 22, 3), np.array([0.0, 0.5, 2.0]))
+    assert np.allclose(moved[1], moved[0] + 0.5 * 66) and np.allclose(moved[2], 2 * 66 + moved[0])
+
+
 def test_frames_in_image_and_differ(joints):
     frames = render_frames(joints, size=SIZE)
     assert len(frames) == len(joints)

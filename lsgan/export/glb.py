@@ -2,12 +2,13 @@
 
 The file holds a "lsgan_motion" root node whose only child is the pelvis; below it one node per SMPL joint
 (named after ``JOINT_NAMES``, children per ``PARENTS``) whose rest translation is the fitted rest offset
-(:func:`lsgan.export.bvh.rest_offsets`, metres) and whose rest rotation is the first frame's pose. Every
-joint node carries a rigid (not skinned) mesh: a small octahedron marking the joint and one octahedral bone
-towards each child (leaves get a stub of ``STUB_FRACTION`` of their own bone). One animation at the motion's
-fps has a LINEAR rotation channel per joint (the IK of :func:`lsgan.export.bvh.joint_rotations`, as unit
-x,y,z,w quaternions) and a translation channel for the pelvis. glTF's conventions (right-handed, +Y up,
-+Z forward, metres) are lsgan's, so nothing is converted.
+(:func:`lsgan.export.bvh.rest_offsets`, metres) and whose rest rotation is the first frame's pose. The joint
+nodes are the joints of a glTF skin: one skinned mesh (a scene root node, "lsgan_skeleton") made of trimesh
+primitives, an icosphere at every joint and a capsule along every bone (leaves get a stub of ``STUB_FRACTION``
+of their own bone), each vertex bound to one joint, so Blender and engines import an armature. One animation at
+the motion's fps has a LINEAR rotation channel per joint (the IK of :func:`lsgan.export.bvh.joint_rotations`,
+as unit x,y,z,w quaternions) and a translation channel for the pelvis. glTF's conventions (right-handed, +Y
+up, +Z forward, metres) are lsgan's, so nothing is converted.
 """
 from __future__ import annotations
 
@@ -26,9 +27,9 @@ GLB_MAGIC = 0x46546C67  # b"glTF" little endian
 CHUNK_JSON = 0x4E4F534A  # b"JSON"
 CHUNK_BIN = 0x004E4942  # b"BIN\0"
 ROOT_NAME = "lsgan_motion"
-JOINT_RADIUS = 0.02  # metres, half-diagonal of the joint marker octahedron
-BONE_WIDTH = 0.12  # bone half-width as a fraction of its length
-BONE_MAX_WIDTH = 0.03  # metres
+JOINT_RADIUS = 0.02  # metres, the joint spheres
+BONE_RADIUS = 0.06  # bone capsule radius as a fraction of its length
+BONE_MAX_RADIUS = 0.015  # metres
 STUB_FRACTION = 0.5
 FLOAT, UINT8, UINT16, UINT32 = 5126, 5121, 5123, 5125
 COMPONENT = {np.dtype(np.float32): FLOAT, np.dtype(np.uint8): UINT8, np.dtype(np.uint16): UINT16,
@@ -36,45 +37,49 @@ COMPONENT = {np.dtype(np.float32): FLOAT, np.dtype(np.uint8): UINT8, np.dtype(np
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-def _octahedron(base: np.ndarray, tip: np.ndarray, width: float, waist: float) -> np.ndarray:
-    """Triangles (8,3,3) of an octahedron from ``base`` to ``tip`` with its square waist at ``waist`` (0..1)."""
-    axis = tip - base
-    unit = axis / np.linalg.norm(axis)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(unit[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(unit, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(unit, u)
-    centre = base + waist * axis
-    ring = [centre + width * d for d in (u, v, -u, -v)]
-    tris = []
-    for i in range(4):
-        a, b = ring[i], ring[(i + 1) % 4]
-        tris.append([base, b, a])
-        tris.append([tip, a, b])
-    return np.array(tris)
+def _bone_parts(k: int, offsets: np.ndarray) -> list:
+    """trimesh primitives of joint ``k`` in its own frame: an icosphere at the joint and a capsule towards
+    each child (or a stub along its own bone for a leaf)."""
+    import trimesh
 
-
-def _joint_triangles(k: int, offsets: np.ndarray) -> np.ndarray:
-    """Triangles (N,3,3) of joint ``k``'s mesh in its own frame: the joint marker and its bones."""
-    origin = np.zeros(3)
-    r = JOINT_RADIUS
-    parts = [_octahedron(origin - [0.0, r, 0.0], origin + [0.0, r, 0.0], r, 0.5)]
-    targets = [offsets[c] for c in CHILDREN[k]] or [offsets[k] * STUB_FRACTION]
-    for target in targets:
+    parts = [trimesh.creation.icosphere(subdivisions=1, radius=JOINT_RADIUS)]
+    for target in [offsets[c] for c in CHILDREN[k]] or [offsets[k] * STUB_FRACTION]:
         length = float(np.linalg.norm(target))
-        if length > 1e-6:
-            parts.append(_octahedron(origin, target, min(BONE_WIDTH * length, BONE_MAX_WIDTH), 0.2))
-    return np.concatenate(parts)
+        if length < 1e-6:
+            continue
+        radius = min(BONE_RADIUS * length, BONE_MAX_RADIUS)
+        capsule = trimesh.creation.capsule(height=max(length - 2 * radius, 1e-4), radius=radius, count=[8, 8])
+        place = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], target / length)  # 4x4: +Z onto the bone
+        place[:3, 3] = target / 2  # capsules are centred on the origin
+        parts.append(capsule.apply_transform(place))
+    return parts
 
 
-def _flat_mesh(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unshared positions (3N,3), outward face normals (3N,3) and uint16 indices (3N,) of convex-part triangles."""
-    tris = tris.astype(np.float64)
-    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
-    positions = tris.reshape(-1, 3).astype(np.float32)
-    normals = np.repeat(normals, 3, axis=0).astype(np.float32)
-    return positions, normals, np.arange(len(positions), dtype=np.uint16)
+def _rest_world(offsets: np.ndarray, pelvis: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """(22,4,4) world matrices of the joint nodes in the bind pose: their rest translations and rotations."""
+    world = np.zeros((NUM_JOINTS, 4, 4))
+    for k in range(NUM_JOINTS):  # parents come first in PARENTS
+        local = np.eye(4)
+        local[:3, :3] = Rotation.from_quat(quat[k]).as_matrix()
+        local[:3, 3] = pelvis if PARENTS[k] < 0 else offsets[k]
+        world[k] = local if PARENTS[k] < 0 else world[PARENTS[k]] @ local
+    return world
+
+
+def skeleton_mesh(offsets: np.ndarray, world: np.ndarray) -> dict[str, np.ndarray]:
+    """The skinned skeleton mesh in the bind pose: positions (V,3), normals (V,3), faces (F,3), joint (V,) of
+    each vertex (its only influence)."""
+    positions, normals, faces, joint = [], [], [], []
+    count = 0
+    for k in range(NUM_JOINTS):
+        for part in _bone_parts(k, offsets):
+            positions.append(part.vertices @ world[k, :3, :3].T + world[k, :3, 3])
+            normals.append(part.vertex_normals @ world[k, :3, :3].T)
+            faces.append(part.faces + count)
+            joint.append(np.full(len(part.vertices), k))
+            count += len(part.vertices)
+    return {"positions": np.concatenate(positions), "normals": np.concatenate(normals),
+            "faces": np.concatenate(faces), "joint": np.concatenate(joint)}
 
 
 def _hemisphere_continuous(quat: np.ndarray) -> np.ndarray:
@@ -141,21 +146,17 @@ def gltf_document(joints: np.ndarray, *, fps: float = 20.0, name: str = "motion"
     material = {"name": "lsgan_skeleton", "doubleSided": False,
                 "pbrMetallicRoughness": {"baseColorFactor": [0.85, 0.55, 0.2, 1.0],
                                          "metallicFactor": 0.0, "roughnessFactor": 0.7}}
-    meshes, nodes = [], [{"name": ROOT_NAME, "children": [1]}]
+    nodes = [{"name": ROOT_NAME, "children": [1]}]
     for k in range(NUM_JOINTS):
-        positions, normals, indices = _flat_mesh(_joint_triangles(k, offsets))
-        attributes = {"POSITION": builder.add(positions, "VEC3", target=ARRAY_BUFFER, bounds=True),
-                      "NORMAL": builder.add(normals, "VEC3", target=ARRAY_BUFFER)}
-        index_acc = builder.add(indices, "SCALAR", target=ELEMENT_ARRAY_BUFFER, bounds=True)
-        meshes.append({"name": f"{JOINT_NAMES[k]}_bone",
-                       "primitives": [{"attributes": attributes, "indices": index_acc, "material": 0, "mode": 4}]})
         translation = j[0, 0] if PARENTS[k] < 0 else offsets[k]
-        node = {"name": JOINT_NAMES[k], "mesh": k,
-                "translation": [float(x) for x in translation.astype(np.float32)],
+        node = {"name": JOINT_NAMES[k], "translation": [float(x) for x in translation.astype(np.float32)],
                 "rotation": [float(x) for x in quat[0, k]]}
         if CHILDREN[k]:
             node["children"] = [c + 1 for c in CHILDREN[k]]
         nodes.append(node)
+    world = _rest_world(offsets.astype(np.float32).astype(np.float64), j[0, 0].astype(np.float32), quat[0])
+    mesh, skin = _skin(builder, offsets, world)
+    nodes.append({"name": "lsgan_skeleton", "mesh": 0, "skin": 0})  # a scene root: glTF ignores its parents
 
     times = (np.arange(frames, dtype=np.float64) / fps).astype(np.float32)
     time_acc = builder.add(times, "SCALAR", bounds=True)
@@ -168,8 +169,33 @@ def gltf_document(joints: np.ndarray, *, fps: float = 20.0, name: str = "motion"
     channels.append({"sampler": NUM_JOINTS, "target": {"node": 1, "path": "translation"}})
 
     extras = {"fps": float(fps), "frames": frames, "units": "metres", "up": "+Y", "forward": "+Z"}
-    return _finish(builder, name=name, scene_nodes=[0], nodes=nodes, meshes=meshes, materials=[material],
-                   animation={"name": name, "samplers": samplers, "channels": channels}, extras=extras)
+    return _finish(builder, name=name, scene_nodes=[0, NUM_JOINTS + 1], nodes=nodes, meshes=[mesh],
+                   materials=[material], animation={"name": name, "samplers": samplers, "channels": channels},
+                   extras=extras, skins=[skin])
+
+
+def _skin(builder: _Builder, offsets: np.ndarray, world: np.ndarray) -> tuple[dict, dict]:
+    """The skeleton mesh (one primitive, every vertex bound to one joint) and its skin over nodes 1..22."""
+    m = skeleton_mesh(offsets, world)
+    joints = np.zeros((len(m["joint"]), 4), np.uint8)
+    joints[:, 0] = m["joint"]
+    weights = np.zeros((len(m["joint"]), 4), np.float32)
+    weights[:, 0] = 1.0
+    index_dtype = np.uint16 if len(m["positions"]) < 65535 else np.uint32
+    attributes = {
+        "POSITION": builder.add(m["positions"].astype(np.float32), "VEC3", target=ARRAY_BUFFER, bounds=True),
+        "NORMAL": builder.add(m["normals"].astype(np.float32), "VEC3", target=ARRAY_BUFFER),
+        "JOINTS_0": builder.add(joints, "VEC4", target=ARRAY_BUFFER),
+        "WEIGHTS_0": builder.add(weights, "VEC4", target=ARRAY_BUFFER),
+    }
+    indices = builder.add(m["faces"].reshape(-1).astype(index_dtype), "SCALAR", target=ELEMENT_ARRAY_BUFFER,
+                          bounds=True)
+    mesh = {"name": "lsgan_skeleton", "primitives": [{"attributes": attributes, "indices": indices, "material": 0,
+                                                      "mode": 4}]}
+    inverse_bind = np.linalg.inv(world).astype(np.float32).transpose(0, 2, 1)  # glTF stores column-major
+    skin = {"name": "lsgan_skeleton", "skeleton": 1, "joints": list(range(1, NUM_JOINTS + 1)),
+            "inverseBindMatrices": builder.add(inverse_bind.reshape(-1, 16), "MAT4")}
+    return mesh, skin
 
 
 def _finish(builder: _Builder, *, name: str, scene_nodes: list[int], nodes: list[dict], meshes: list[dict],

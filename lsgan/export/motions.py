@@ -18,9 +18,10 @@ FORMATS = ("glb", "bvh", "gif", "mp4")
 
 @dataclass(frozen=True)
 class Exported:
-    """One written motion: its file, the fitted-parameter file and fit error (body export only)."""
+    """One written motion: its file, its frame count, the fitted-parameter file and fit error (body export only)."""
 
     path: Path
+    frames: int
     params: Path | None = None
     fit_mean_error_mm: float | None = None
     fit_max_error_mm: float | None = None
@@ -76,12 +77,12 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
             fit = fit_body(joints, model, iterations=fit_iterations, fps=fps)
             write_body_glb(path, fit, model)
             params = write_fit_npz(path.with_suffix(".npz"), fit)
-            results.append(Exported(path, params, fit.mean_error_mm, fit.max_joint_error_mm))
+            results.append(Exported(path, len(joints), params, fit.mean_error_mm, fit.max_joint_error_mm))
         elif fmt in ("gif", "mp4"):
             label = title if title is not None else titles.get(path.stem, path.stem)
             (write_gif if fmt == "gif" else write_mp4)(path, joints, fps=fps, title=label)
-            results.append(Exported(path))
+            results.append(Exported(path, len(joints)))
         else:
             (write_glb if fmt == "glb" else write_bvh)(path, joints, fps=fps)
-            results.append(Exported(path))
+            results.append(Exported(path, len(joints)))
     return results

@@ -1,0 +1,41 @@
+"""The Blender scene settings that play an exported motion at its own length and speed.
+
+Blender's importers leave the scene at its defaults, 24 fps and frames 1-250, unless told otherwise (measured
+with Blender 5.0, ``pip install bpy``): a 20 fps BVH then plays 1.2x too fast and stops at frame 250 (unless
+the importer's "Update Scene FPS" and "Update Scene Duration" are ticked), and a GLB keeps its speed (glTF keys
+are in seconds) but stops at frame 250. The settings below are what ``lsgan export`` prints and
+``tests/test_blender.py`` applies in Blender.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """Blender's ``scene.render.fps`` / ``fps_base`` (the rate is fps / fps_base) and the frame range."""
+
+    fps: int
+    fps_base: float
+    frame_start: int
+    frame_end: int
+
+
+def scene_settings(fmt: str, fps: float, frames: int) -> SceneSettings:
+    """For a ``fmt`` ("bvh" or "glb") file of ``frames`` frames at ``fps``: the BVH importer keys frames
+    1..T, the glTF importer puts the key at t seconds on frame t * scene rate, so 0..T-1 at the motion's rate."""
+    rate = max(1, round(fps))
+    start = 1 if fmt == "bvh" else 0
+    return SceneSettings(rate, rate / fps, start, start + frames - 1)
+
+
+def blender_hint(fmt: str, fps: float, frames: int) -> str:
+    """One line for the user: the import options and scene settings that keep length and speed."""
+    s = scene_settings(fmt, fps, frames)
+    rate = f"{s.fps} fps" + ("" if s.fps_base == 1 else f" / base {s.fps_base:.4f}")
+    if fmt == "bvh":
+        return (f"Blender: File > Import > Motion Capture (.bvh) with Scale 0.01 and both 'Update Scene FPS' and "
+                f"'Update Scene Duration' ticked (or set the scene to {rate}, frames {s.frame_start}-{s.frame_end}); "
+                "otherwise it plays at 24 fps and stops at frame 250")
+    return (f"Blender: set Output > Frame Rate to {rate} before File > Import > glTF 2.0, then the frame range to "
+            f"{s.frame_start}-{s.frame_end}; otherwise it stops at frame 250")

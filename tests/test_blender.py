@@ -1,0 +1,137 @@
+"""Blender imports our BVH and GLB at their own length and speed with the settings ``lsgan export`` prints.
+
+Runs Blender as a Python module (``pip install bpy`` in a separate virtual environment; CI does) named by
+LSGAN_BLENDER_PYTHON; skips with that instruction otherwise. A 300-frame motion (longer than Blender's default
+250-frame scene) is exported at 20 and 30 fps; Blender imports each file fresh, once with its defaults (to show
+what goes wrong: the test asserts it does) and once with the printed settings, and reports the scene rate, frame
+range and the imported action's key range.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lsgan.data.synthetic import generate
+from lsgan.export.blender import scene_settings
+
+BLENDER_PYTHON = os.environ.get("LSGAN_BLENDER_PYTHON")
+pytestmark = pytest.mark.skipif(
+    not BLENDER_PYTHON or not Path(BLENDER_PYTHON).exists(),
+    reason="set LSGAN_BLENDER_PYTHON to a Python with bpy (python3 -m venv v && v/bin/pip install bpy), as CI does")
+
+FRAMES = 300
+SCRIPT = r"""
+import json, sys, bpy
+fmt, path, settings = sys.argv[-3], sys.argv[-2], json.loads(sys.argv[-1])
+out = {}
+for mode in ("defaults", "settings"):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    if fmt == "bvh":
+        flags = dict(update_scene_fps=True, update_scene_duration=True) if mode == "settings" else {}
+        bpy.ops.import_anim.bvh(filepath=path, global_scale=0.01, **flags)
+    else:
+        if mode == "settings":
+            scene.render.fps, scene.render.fps_base = settings["fps"], settings["fps_base"]
+        bpy.ops.import_scene.gltf(filepath=path)
+        if mode == "settings":
+            scene.frame_start, scene.frame_end = settings["frame_start"], settings["frame_end"]
+    keys = [tuple(a.frame_range) for a in bpy.data.actions]
+    out[mode] = {"rate": scene.render.fps / scene.render.fps_base, "start": scene.frame_start,
+                 "end": scene.frame_end, "keys": [min(k[0] for k in keys), max(k[1] for k in keys)]}
+print("REPORT" + json.dumps(out))
+"""
+
+
+def _blender(fmt: str, path: Path, fps: float) -> dict:
+    settings = scene_settings(fmt, fps, FRAMES).__dict__
+    out = subprocess.run([BLENDER_PYTHON, "-c", SCRIPT, fmt, str(path), json.dumps(settings)], capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    line = [x for x in out.stdout.splitlines() if x.startswith("REPORT")]
+    assert line, out.stdout[-2000:] + out.stderr[-2000:]
+    return json.loads(line[0][len("REPORT"):])
+
+
+@pytest.fixture(scope="module")
+def motion(tmp_path_factory) -> Path:
+    joints = np.concatenate([generate(1, seed=s)[0].joints for s in range(8)])[:FRAMES].astype(np.float32)
+    assert len(joints) == FRAMES
+    path = tmp_path_factory.mktemp("blender") / "walk_joints.npy"
+    np.save(path, joints)
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["bvh", "glb"])
+@pytest.mark.parametrize("fps", [20.0, 30.0])
+def test_blender_plays_the_whole_motion_at_its_speed(motion, tmp_path, fmt, fps):
+    exported = tmp_path / f"m.{fmt}"
+    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", f"--{fmt}", str(motion), "--fps", str(fps),
+                          "-o", str(exported)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "Blender:" in run.stderr and f"{round(fps)} fps" in run.stderr  # the printed advice
+    report = _blender(fmt, exported, fps)
+    seconds = FRAMES / fps
+    good = report["settings"]
+    assert good["rate"] == pytest.approx(fps)
+    assert good["keys"][1] - good["keys"][0] == pytest.approx(FRAMES - 1, abs=1e-3)  # one key per frame
+    assert good["start"] <= good["keys"][0] and good["end"] >= good["keys"][1]  # nothing cut
+    assert (good["keys"][1] - good["keys"][0] + 1) / good["rate"] == pytest.approx(seconds, abs=1e-3)
+    bad = report["defaults"]  # without them: a 24 fps scene of frames 1-250
+    assert bad["rate"] == 24 and bad["end"] == 250
+    if fmt == "bvh":  # one key per frame whatever the scene's rate: too fast at 20 fps, and cut at frame 250
+        assert bad["keys"][1] == pytest.approx(FRAMES)
+    else:  # keys in seconds: the speed is kept, the motion is cut once it is longer than 250 / 24 s
+        assert bad["keys"][1] == pytest.approx((FRAMES - 1) / fps * 24, abs=1e-3)
+        assert (bad["keys"][1] > 250) == (seconds > 250 / 24)
+
+
+ARMATURE_SCRIPT = r"""
+import json, sys, bpy
+path, frames = sys.argv[-2], json.loads(sys.argv[-1])
+bpy.ops.wm.read_factory_settings(use_empty=True)
+scene = bpy.context.scene
+scene.render.fps, scene.render.fps_base = 20, 1.0
+bpy.ops.import_scene.gltf(filepath=path)
+arms = [o for o in scene.objects if o.type == "ARMATURE"]
+shapes = {pb.custom_shape for a in arms for pb in a.pose.bones if pb.custom_shape is not None}
+meshes = [o for o in scene.objects if o.type == "MESH" and o not in shapes]  # not the importer's bone display
+out = {"armatures": len(arms), "meshes": len(meshes), "bones": [b.name for b in arms[0].data.bones] if arms else [],
+       "deformed": [any(m.type == "ARMATURE" and m.object == arms[0] for m in o.modifiers) for o in meshes] if arms else [],
+       "heads": {}}
+for f in frames:
+    scene.frame_set(f)
+    mw = arms[0].matrix_world
+    out["heads"][str(f)] = {b.name: list(mw @ b.head) for b in arms[0].pose.bones}
+print("REPORT" + json.dumps(out))
+"""
+
+
+def test_blender_imports_the_skeleton_glb_as_an_armature(motion, tmp_path):
+    """One armature of our 22 joints and one mesh it deforms (not 22 loose objects); posed at a frame, each
+    bone's head sits on the joint (Blender's Z-up: x, -z, y of ours) within 1 mm."""
+    from lsgan.data.skeleton import JOINT_NAMES
+
+    joints = np.load(motion)
+    path = tmp_path / "walk.glb"
+    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", "--glb", str(motion), "-o", str(path)],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    frames = [0, 150, FRAMES - 1]
+    out = subprocess.run([BLENDER_PYTHON, "-c", ARMATURE_SCRIPT, str(path), json.dumps(frames)], capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    report = json.loads([x for x in out.stdout.splitlines() if x.startswith("REPORT")][0][len("REPORT"):])
+    assert report["armatures"] == 1 and report["meshes"] == 1 and report["deformed"] == [True]
+    assert sorted(report["bones"]) == sorted(JOINT_NAMES)
+    for f in frames:
+        heads = report["heads"][str(f)]
+        ours = np.array([heads[name] for name in JOINT_NAMES])
+        expected = joints[f][:, [0, 2, 1]] * [1.0, -1.0, 1.0]  # glTF (x, y, z) -> Blender (x, -z, y)
+        assert np.abs(ours - expected).max() < 1e-3, (f, np.abs(ours - expected).max())
