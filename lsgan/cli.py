@@ -554,6 +554,8 @@ Examples:
   lsgan generate --gan runs/gan --vae runs/vae --text "someone jumps twice" --seconds 4 --num 4 --seed 1 -o out/
   lsgan generate --gan runs/gan --vae runs/vae --prompts prompts.txt -o out/     # lines: 'prompt' or 'prompt#frames'
   lsgan generate --gan runs/act-gan --vae runs/vae --action jump --num 8 -o out/
+  lsgan generate --gan runs/gan --vae runs/vae --timeline "walk forward#80; turn around#60; wave#60" -o out/
+  lsgan generate --gan runs/gan --vae runs/vae --timeline take.txt --overlap 16 -o out/   # lines: 'prompt#frames'
   lsgan generate --gan runs/diffusion --vae runs/vae --text "a person waves" --steps 50 --guidance 7.5 -o out/
   lsgan generate --runtime onnx --gan gan-onnx --text "a person walks forward" -o out/   # export-model's folder
   lsgan --threads 1 generate --runtime onnx --int8 --gan gan-onnx --prompts prompts.txt -o out/
@@ -570,6 +572,11 @@ Examples:
 @click.option("--text", "texts", multiple=True, help="A prompt (repeat for several).")
 @click.option("--prompts", type=click.Path(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
 @click.option("--action", "actions", multiple=True, help="An action label, for action-conditioned models (repeatable).")
+@click.option("--timeline", help="One continuous motion from several prompts, longer than the model's clips: a file "
+              "of 'prompt#frames' lines, or the same inline separated by ';' ('walk forward#80; turn around#60'). A "
+              "value naming an existing file is read as the file; any other value holding '#' is inline.")
+@click.option("--overlap", type=click.IntRange(0), help="--timeline: frames over which consecutive segments are "
+              "cross-faded (default 10; 0: hard cuts).")
 @click.option("--frames", type=int, help="Length in frames at 20 fps (default 120).")
 @click.option("--seconds", type=float, help="Length in seconds (instead of --frames).")
 @click.option("--num", default=1, show_default=True, help="Motions per prompt or action.")
@@ -582,8 +589,8 @@ Examples:
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
               "wrote there (never other files).")
-def generate(gan, vae, runtime, int8, texts, prompts, actions, frames, seconds, num, seed, text_encoder_path,
-             batch_size, device, steps, guidance, output, force) -> None:
+def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, frames, seconds, num, seed,
+             text_encoder_path, batch_size, device, steps, guidance, output, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.generation import Request, claim_generation, read_prompts, write_generation
@@ -595,6 +602,12 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, frames, seconds, 
         raise click.UsageError("a motion needs at least 4 frames")
     _check_runtime_options(runtime, vae=vae, int8=int8, text_encoder_path=text_encoder_path, device=device,
                            steps=steps, guidance=guidance)
+    if timeline is not None or overlap is not None:
+        _check_timeline_options(timeline, texts=texts, prompts=prompts, actions=actions, frames=frames,
+                                seconds=seconds, num=num)
+        return _generate_timeline(timeline, overlap, gan=gan, vae=vae, runtime=runtime, int8=int8, seed=seed,
+                                  device=device, text_encoder_path=text_encoder_path, batch_size=batch_size,
+                                  steps=steps, guidance=guidance, output=output, force=force)
     requests = [Request(text=t, frames=n_frames) for t in texts] + [Request(action=a, frames=n_frames) for a in actions]
     if prompts:
         requests += read_prompts(prompts, n_frames)
@@ -622,6 +635,41 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, frames, seconds, 
     click.echo(f"{len(result.motions)} motions in {output} ({manifest.name}); {result.ms_per_motion:.2f} ms per motion "
                f"(text {t['text_encoding'] * 1e3:.1f} ms, generator {t['generator'] * 1e3:.1f} ms, "
                f"VAE decoder {t['vae_decoding'] * 1e3:.1f} ms in all)", err=True)
+
+
+def _check_timeline_options(timeline, *, texts, prompts, actions, frames, seconds, num) -> None:
+    """--timeline sets the prompts and lengths itself; --overlap belongs to it."""
+    if timeline is None:
+        raise click.UsageError("--overlap goes with --timeline")
+    given = [name for name, value in (("--text", texts), ("--prompts", prompts), ("--action", actions),
+                                      ("--frames", frames), ("--seconds", seconds)) if value]
+    given += ["--num"] if num != 1 else []
+    if given:
+        raise click.UsageError(f"{', '.join(given)}: not used with --timeline (its lines give the prompts and "
+                               "lengths of one motion)")
+
+
+def _generate_timeline(timeline: str, overlap: int | None, *, gan, vae, output, force, **options) -> None:
+    """``generate --timeline``: parse (an inline timeline's errors are usage errors), generate, join, write."""
+    from lsgan.generation import claim_generation, write_generation
+    from lsgan.timeline import DEFAULT_OVERLAP, TimelineError, generate_timeline, parse_timeline
+
+    try:
+        segments, source = parse_timeline(timeline)
+    except TimelineError as e:
+        if e.inline:
+            raise click.UsageError(str(e)) from None
+        _fail(str(e))
+    try:
+        claim_generation(output, gan, *([vae] if vae else []), *([source] if source else []), force=force)
+        result = generate_timeline(gan, vae, segments, overlap=DEFAULT_OVERLAP if overlap is None else overlap,
+                                   source=source, **options)
+        manifest = write_generation(result, output, force=force)
+    except (ValueError, FileNotFoundError) as e:
+        _fail(str(e))
+    n = len(result.motions[0].features)
+    click.echo(f"1 motion of {n} frames ({n / 20:.1f} s) from {len(segments)} segments in {output} ({manifest.name})",
+               err=True)
 
 
 def _check_runtime_options(runtime: str, *, vae, int8, text_encoder_path, device, steps, guidance) -> None:
@@ -691,10 +739,13 @@ Examples:
   lsgan export --glb out/ --body-model ~/models -o glb/   # SMPL body (skinned) + fitted .npz per motion
   lsgan export --glb walk.npy --body-model ~/models/smplx/SMPLX_MALE.npz --gender male -o walk.glb
   lsgan export --bvh out/ -o bvh/
+  lsgan export --bvh out/ --no-fix-feet -o bvh/    # feet as generated (default: held still in contact)
   lsgan export --bvh motion_features.npy --fps 30 -o motion.bvh
   lsgan export --gif out/ -o previews/             # stick-figure previews, captions as titles
   lsgan export --mp4 out/ -o previews/             # the same as H.264 videos (ffmpeg comes with the package)
   lsgan export --mp4 --title "a wave" out/000_wave_joints.npy --fps 30 -o wave.mp4
+  lsgan export --bvh out/ --rig character.bvh --preset mixamo -o rig/   # on your character's skeleton
+  lsgan export --bvh walk.npy --rig hero.bvh --joint-map hero_map.json -o walk_hero.bvh
 """)
 @click.argument("input", type=click.Path(exists=True))
 @click.option("--glb", "as_glb", is_flag=True, help="Animated glTF binary: named joint nodes, a visible skeleton, one animation.")
@@ -711,10 +762,18 @@ Examples:
 @click.option("--fit-iterations", default=100, show_default=True, type=click.IntRange(1),
               help="--body-model: L-BFGS iterations of the batched pose refinement.")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
+@click.option("--rig", type=click.Path(exists=True, dir_okay=False), help="--bvh: write the motion on this BVH "
+              "character's skeleton (its hierarchy, rest offsets, channel order and units), by IK.")
+@click.option("--joint-map", type=click.Path(exists=True, dir_okay=False),
+              help="--rig: the JSON joint map naming the rig's joint for each SMPL joint (the importer's format).")
+@click.option("--preset", type=click.Choice(["bandai", "cmu", "mixamo"]), help="--rig: a built-in joint map.")
 @click.option("-o", "--output", required=True, type=click.Path(), help="Output file, or folder when INPUT holds several motions.")
 @click.option("--force", is_flag=True, help="Replace existing outputs that lsgan wrote (never other files).")
+@click.option("--fix-feet/--no-fix-feet", default=None, help="Hold each foot still while in contact, by IK on the "
+              "leg only. Default: on for generated motions (the contacts of their features); --fix-feet on a plain "
+              "joints .npy estimates the contacts from its joints.")
 def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, model_type, fit_iterations, fps,
-           output, force) -> None:
+           rig, joint_map, preset, output, force, fix_feet) -> None:
     """Export motions (joints .npy, features .npy or a generate folder) for Blender, three.js and game engines."""
     from lsgan.data.body_model import BodyModelError
     from lsgan.data.clip import ClipError
@@ -725,10 +784,17 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
         raise click.UsageError("choose one format: --glb, --bvh, --gif or --mp4")
     if body_model is not None and not as_glb:
         raise click.UsageError("--body-model goes with --glb")
+    if rig is not None and not as_bvh:
+        raise click.UsageError("--rig goes with --bvh (a GLB on your rig is not available yet)")
+    if rig is not None and (joint_map is None) == (preset is None):
+        raise click.UsageError("--rig needs one joint map: --joint-map MAP.json or --preset bandai|cmu|mixamo")
+    if rig is None and (joint_map is not None or preset is not None):
+        raise click.UsageError("--joint-map and --preset go with --rig")
     fmt = "glb" if as_glb else "bvh" if as_bvh else "gif" if as_gif else "mp4"
     try:
         done = export_motions(input, output, fmt=fmt, fps=fps, title=title, body_model=body_model, gender=gender,
-                              model_type=model_type, fit_iterations=fit_iterations, force=force)
+                              model_type=model_type, fit_iterations=fit_iterations, force=force, rig=rig,
+                              joint_map=joint_map, preset=preset, fix_feet=fix_feet)
     except (ValueError, ClipError, BodyModelError, EncodeError) as e:
         _fail(str(e))
     for item in done:
@@ -741,8 +807,8 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
         from lsgan.export.blender import blender_hint
 
         longest = max(d.frames for d in done)
-        click.echo(blender_hint(fmt, fps, longest) + ("" if len(done) == 1 else f" (the longest, {longest} frames)"),
-                   err=True)
+        click.echo(blender_hint(fmt, fps, longest, scale=done[0].unit_m)
+                   + ("" if len(done) == 1 else f" (the longest, {longest} frames)"), err=True)
 
 
 @main.command(epilog="""\b

@@ -254,6 +254,13 @@ def generate(
     """
     loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path,
                          strict_pairing=strict_pairing)
+    return generate_loaded(loaded, requests, num=num, seed=seed, batch_size=batch_size, steps=steps,
+                           guidance=guidance, eta=eta)
+
+
+def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, seed: int = 0, batch_size: int = 256,
+                    steps: int | None = None, guidance: float | None = None, eta: float | None = None) -> Generation:
+    """:func:`generate` with the models already loaded (the same motions for the same arguments)."""
     noise, g = draw_noise(seed, len(requests) * num, noise_dim(loaded.model, loaded.meta))
     feats, timings, sampling = run_models(loaded, requests, [num] * len(requests), noise, g=g, batch_size=batch_size,
                                           steps=steps, guidance=guidance, eta=eta)
@@ -262,7 +269,7 @@ def generate(
                joints=recover_from_ric(f.astype(np.float32)))
         for k, f in enumerate(feats)
     ]
-    return Generation(motions=motions, timings_s=timings, gan=str(gan), vae=str(vae), seed=seed,
+    return Generation(motions=motions, timings_s=timings, gan=loaded.gan, vae=loaded.vae, seed=seed,
                       kind=loaded.meta["kind"], sampling=sampling)
 
 

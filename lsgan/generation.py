@@ -48,6 +48,7 @@ class Generation:
     # {"generator": {"path", "sha256"}, "vae": {...}} when known without reading the checkpoints (an ONNX export
     # records them); None: hashed from ``gan`` and ``vae`` when written
     checkpoints: dict | None = None
+    timeline: dict | None = None  # ``generate --timeline``: its segments and how they were joined (lsgan.timeline)
 
     @property
     def ms_per_motion(self) -> float:
@@ -117,6 +118,8 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
         "ms_per_motion": result.ms_per_motion,
         "motions": entries,
     }
+    if result.timeline is not None:
+        manifest["timeline"] = result.timeline
     path = outputs.claim_file(out / "manifest.json", force=True)
     with atomic_file(path, "w", encoding="utf-8") as fh:
         json.dump(manifest, fh, indent=1)

@@ -177,6 +177,16 @@ def existing_lsgan_shard(w: Path, pipe: Path) -> list:
     return ["preprocess", "--source", "synthetic", "--num-clips", 40, "-o", pipe / "synth.h5"]
 
 
+def rig_export(w: Path, p: Path, *extra, drop: str | None = None) -> list:
+    """``export --bvh --rig``: a rig BVH (our 22-joint skeleton) and its map (without ``drop``) in ``w``."""
+    write_bvh(w / "rig.bvh", good_joints()[0][:5])
+    m = json.loads(json.dumps(IDENTITY_MAP))
+    m["joints"].pop(drop, None)
+    (w / "map.json").write_text(json.dumps(m))
+    return ["export", "--bvh", next((p / "gen").glob("*_joints.npy")), "--rig", w / "rig.bvh", *extra,
+            "-o", w / "out.bvh"]
+
+
 def text_file(w: Path, name: str = "notes.txt") -> Path:
     (w / name).write_text("not what lsgan expects")
     return w / name
@@ -204,6 +214,14 @@ def run_with_user_files(w: Path, pipe: Path) -> list:
 def generate_args(pipe: Path, out: Path, *extra) -> list:
     return ["generate", "--gan", pipe / "gan", "--vae", pipe / "vae", "--text", "a person walks", "--frames", 40,
             "-o", out, *extra]
+
+
+def timeline_args(w: Path, pipe: Path, content: str | None = None, inline: str | None = None) -> list:
+    """generate --timeline from a file take.txt holding ``content``, or from ``inline`` text."""
+    if content is not None:
+        (w / "take.txt").write_text(content)
+    return ["generate", "--gan", pipe / "gan", "--vae", pipe / "vae", "--timeline",
+            inline if inline is not None else w / "take.txt", "-o", w / "out"]
 
 
 def copy_run(src: Path, dst: Path) -> Path:
@@ -333,6 +351,20 @@ CASES = [
     Case("generate-no-prompt", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "-o", w / "out"], 2,
          "--text"),
     Case("generate-output-is-file", lambda w, p: generate_args(p, text_file(w)), 1, "not a folder"),
+    Case("timeline-blank-line", lambda w, p: timeline_args(w, p, "walk#40\n\nrun#40\n"), 1,
+         "take.txt: line 2 is blank"),
+    Case("timeline-line-without-frames", lambda w, p: timeline_args(w, p, "walk#40\nrun forward\n"), 1,
+         "take.txt: line 2 has no '#frames'"),
+    Case("timeline-frames-not-a-number", lambda w, p: timeline_args(w, p, "walk#forty\n"), 1,
+         "line 1 'forty' is not a whole number of frames"),
+    Case("timeline-empty-file", lambda w, p: timeline_args(w, p, ""), 1, "take.txt: no segments"),
+    Case("timeline-file-missing", lambda w, p: timeline_args(w, p), 1, "take.txt: no such timeline file"),
+    Case("timeline-inline-item-without-frames", lambda w, p: timeline_args(w, p, inline="walk#40; run"), 2,
+         "--timeline: item 2 has no '#frames'"),
+    Case("timeline-segment-over-max-len", lambda w, p: timeline_args(w, p, "walk#195\nrun#40\n"), 1,
+         "line 1: 195 frames + 10 of overlap is more than this model decodes"),
+    Case("timeline-segment-within-overlap", lambda w, p: timeline_args(w, p, "walk#40\nrun#8\n"), 1,
+         "line 2: 8 frames; a segment needs at least 11"),
     # export
     Case("export-two-formats", lambda w, p: ["export", "--glb", "--bvh", p / "gen", "-o", w / "x"], 2, "one format"),
     Case("export-user-file", lambda w, p: ["export", "--glb", next((p / "gen").glob("*_joints.npy")),
@@ -346,6 +378,17 @@ CASES = [
          "m_joints.npy"),
     Case("export-body-model-missing", lambda w, p: ["export", "--glb", p / "gen", "--body-model", w / "nomodels",
                                                     "-o", w / "body"], 1, "does not exist"),
+    Case("export-rig-missing", lambda w, p: ["export", "--bvh", p / "gen", "--rig", w / "nope.bvh", "--preset",
+                                             "bandai", "-o", w / "x"], 2, "does not exist"),
+    Case("export-rig-not-bvh", lambda w, p: ["export", "--bvh", p / "gen", "--rig", text_file(w, "char.bvh"),
+                                             "--preset", "bandai", "-o", w / "x"], 1, "not a BVH file"),
+    Case("export-rig-lacks-map-joints", lambda w, p: rig_export(w, p, "--preset", "mixamo"), 1,
+         "needs joints ['mixamorig:Hips'"),
+    Case("export-rig-map-missing-joint", lambda w, p: rig_export(w, p, "--joint-map", w / "map.json",
+                                                                  drop="left_wrist"), 1, "lacks SMPL joints"),
+    Case("export-rig-no-map", lambda w, p: rig_export(w, p), 2, "--rig needs one joint map"),
+    Case("export-rig-with-glb", lambda w, p: ["export", "--glb", p / "gen", "--rig", text_file(w, "char.bvh"),
+                                              "--preset", "bandai", "-o", w / "x"], 2, "--rig goes with --bvh"),
     # export-model (ONNX); the rows of generate --runtime onnx, which need an export, are in test_deploy.py
     Case("export-model-run-missing", lambda w, p: ["export-model", w / "nope", "-o", w / "x", "--onnx"], 2,
          "does not exist"),

@@ -35,6 +35,7 @@ class Bvh:
     ``names``/``parents``/``offsets`` (J,3) describe the joints in file order (a parent always precedes its
     children; roots have parent -1). ``channels[j]`` lists joint j's channel names in file order and
     ``motion`` (F,C) holds the values, C = total channel count, joints' channels consecutive in file order.
+    ``end_sites`` keeps each End Site's joint and offset, so a writer can reproduce the hierarchy.
     """
 
     path: str
@@ -44,6 +45,7 @@ class Bvh:
     channels: tuple[tuple[str, ...], ...]
     frame_time: float
     motion: np.ndarray
+    end_sites: tuple[tuple[int, tuple[float, float, float]], ...] = ()  # (joint, offset) of each End Site
 
     @property
     def num_frames(self) -> int:
@@ -85,13 +87,15 @@ def _read_bytes(path: str | Path) -> bytes:
     return data
 
 
-def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list[list[float]], list[tuple[str, ...]]]:
-    """Joint names, parents, offsets and channel lists from the text between HIERARCHY and MOTION."""
+def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list[list[float]], list[tuple[str, ...]],
+                                                     list[tuple[int, list[float]]]]:
+    """Joint names, parents, offsets, channel lists and End Sites from the text between HIERARCHY and MOTION."""
     names: list[str] = []
+    end_sites: list[tuple[int, list[float]]] = []
     parents: list[int] = []
     offsets: list[list[float]] = []
     channels: list[tuple[str, ...]] = []
-    stack: list[int] = []  # joint index per open brace; -1 for an End Site block
+    stack: list[int] = []  # joint index per open brace; -1 - k for End Site k
     pending: int | None = None  # a joint or End Site declared, its '{' not yet read
 
     def fail(problem: str, lineno: int) -> ClipError:
@@ -126,7 +130,10 @@ def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list
                     i += 1
                 if not stack:
                     raise fail("End Site outside any joint", lineno)
-                pending = -1
+                if stack[-1] < 0:
+                    raise fail("End Site inside an End Site", lineno)
+                end_sites.append((stack[-1], [0.0, 0.0, 0.0]))
+                pending = -len(end_sites)
             elif tok == "{":
                 if pending is None:
                     raise fail("'{' without a ROOT, JOINT or End Site", lineno)
@@ -148,6 +155,8 @@ def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list
                     raise fail("OFFSET outside any joint", lineno)
                 if stack[-1] >= 0:
                     offsets[stack[-1]] = vec
+                else:
+                    end_sites[-1 - stack[-1]] = (end_sites[-1 - stack[-1]][0], vec)
                 i += 3
             elif key == "CHANNELS":
                 if not stack or stack[-1] < 0:
@@ -175,7 +184,7 @@ def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list
         raise ClipError(f"{path}: hierarchy has {len(stack)} unclosed '{{'")
     if not names:
         raise ClipError(f"{path}: hierarchy declares no joints")
-    return names, parents, offsets, channels
+    return names, parents, offsets, channels, end_sites
 
 
 def read_bvh(path: str | Path) -> Bvh:
@@ -194,7 +203,7 @@ def read_bvh(path: str | Path) -> Bvh:
         frame_time = float(motion.group(2))
     except ValueError as exc:
         raise ClipError(f"{path}: bad MOTION header: {exc}") from exc
-    names, parents, offsets, channels = _parse_hierarchy(path, header)
+    names, parents, offsets, channels, end_sites = _parse_hierarchy(path, header)
     num_channels = sum(len(c) for c in channels)
     if num_frames <= 0:
         raise ClipError(f"{path}: zero frames")
@@ -226,6 +235,7 @@ def read_bvh(path: str | Path) -> Bvh:
         channels=tuple(channels),
         frame_time=frame_time,
         motion=values.reshape(num_frames, num_channels),
+        end_sites=tuple((j, (v[0], v[1], v[2])) for j, v in end_sites),
     )
 
 

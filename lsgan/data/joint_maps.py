@@ -2,7 +2,7 @@
 
 A map names, for every SMPL joint, either one source joint or a point on the segment between two source
 joints (for SMPL joints the source skeleton lacks, e.g. Bandai has two spine joints where SMPL has three).
-It also says how to reach metres, Y up and the frame rate. Presets: ``bandai`` and ``cmu``.
+It also says how to reach metres, Y up and the frame rate. Presets: ``bandai``, ``cmu`` and ``mixamo``.
 
 User map file (JSON), the same fields as the presets::
 
@@ -146,7 +146,28 @@ CMU = JointMap(
     },
 )
 
-PRESETS: dict[str, JointMap] = {"bandai": BANDAI, "cmu": CMU}
+# Mixamo's standard bone names (mixamorig:Hips, mixamorig:Spine, ...): three spine joints as SMPL has, so every
+# SMPL joint has its own bone; fingers, eyes and *_End bones stay unmapped. Centimetres, Y up (a map file with
+# the same joints and another scale or up axis covers other exports).
+_MIXAMO_SIDES = {"left": "Left", "right": "Right"}
+MIXAMO = JointMap(
+    name="mixamo",
+    scale=0.01,
+    joints={
+        "pelvis": "mixamorig:Hips",
+        "spine1": "mixamorig:Spine",
+        "spine2": "mixamorig:Spine1",
+        "spine3": "mixamorig:Spine2",
+        "neck": "mixamorig:Neck",
+        "head": "mixamorig:Head",
+        **{f"{side}_{smpl}": f"mixamorig:{name}{bone}" for side, name in _MIXAMO_SIDES.items()
+           for smpl, bone in (("hip", "UpLeg"), ("knee", "Leg"), ("ankle", "Foot"), ("foot", "ToeBase"),
+                              ("collar", "Shoulder"), ("shoulder", "Arm"), ("elbow", "ForeArm"),
+                              ("wrist", "Hand"))},
+    },
+)
+
+PRESETS: dict[str, JointMap] = {"bandai": BANDAI, "cmu": CMU, "mixamo": MIXAMO}
 
 
 def _parse_spec(smpl: str, spec: object, where: str) -> JointSpec:

@@ -29,12 +29,13 @@ def scene_settings(fmt: str, fps: float, frames: int) -> SceneSettings:
     return SceneSettings(rate, rate / fps, start, start + frames - 1)
 
 
-def blender_hint(fmt: str, fps: float, frames: int) -> str:
-    """One line for the user: the import options and scene settings that keep length and speed."""
+def blender_hint(fmt: str, fps: float, frames: int, scale: float = 0.01) -> str:
+    """One line for the user: the import options and scene settings that keep length and speed (``scale``: the
+    BVH's metres per unit, 0.01 for ours in centimetres, a rig's own otherwise)."""
     s = scene_settings(fmt, fps, frames)
     rate = f"{s.fps} fps" + ("" if s.fps_base == 1 else f" / base {s.fps_base:.4f}")
     if fmt == "bvh":
-        return (f"Blender: File > Import > Motion Capture (.bvh) with Scale 0.01 and both 'Update Scene FPS' and "
+        return (f"Blender: File > Import > Motion Capture (.bvh) with Scale {scale:g} and both 'Update Scene FPS' and "
                 f"'Update Scene Duration' ticked (or set the scene to {rate}, frames {s.frame_start}-{s.frame_end}); "
                 "otherwise it plays at 24 fps and stops at frame 250")
     return (f"Blender: set Output > Frame Rate to {rate} before File > Import > glTF 2.0, then the frame range to "

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from lsgan.data.bvh import POSITION_CHANNELS, ROTATION_CHANNELS
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, RAW_OFFSETS
 from lsgan.io import atomic_file
 
@@ -120,38 +121,96 @@ def joint_rotations(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return local_rot
 
 
+def channel_values(local: np.ndarray, translations: np.ndarray, channels) -> np.ndarray:
+    """The MOTION block (T,C) for local rotations (T,J,3,3) and translations (T,J,3) in file units.
+
+    Each joint's channels in its own order: positions from ``translations``, rotations as intrinsic Euler
+    degrees in the joint's rotation order (R = R_c1 @ R_c2 @ R_c3, as the reader composes them). A joint with
+    fewer than three rotation channels can only hold the identity; anything else raises ValueError.
+    """
+    t = local.shape[0]
+    columns: list[np.ndarray] = []
+    for k, chans in enumerate(channels):
+        order = "".join(c[0] for c in chans if c in ROTATION_CHANNELS)
+        if len(order) == 3:
+            with warnings.catch_warnings():  # gimbal lock is harmless: the angles still compose to the same matrix
+                warnings.simplefilter("ignore", UserWarning)
+                angles = Rotation.from_matrix(local[:, k]).as_euler(order, degrees=True)
+        elif np.allclose(local[:, k], np.eye(3), atol=1e-9):
+            angles = np.zeros((t, 3))
+        else:
+            raise ValueError(f"joint {k} has rotation channels {order or 'none'}: it needs all three to turn")
+        for c in chans:
+            if c in POSITION_CHANNELS:
+                columns.append(translations[:, k, POSITION_CHANNELS.index(c)])
+            else:
+                columns.append(angles[:, order.index(c[0])])
+    return np.stack(columns, axis=1) if columns else np.zeros((t, 0))
+
+
 def motion_channels(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """The MOTION block (T, 6 + 3*21) in file order: root position in file units, then ZYX Euler degrees."""
     j = np.asarray(joints, dtype=np.float64)
     local = joint_rotations(j, offsets)[:, list(FILE_ORDER)]
-    with warnings.catch_warnings():  # gimbal lock is harmless: the angles still compose to the same matrix
-        warnings.simplefilter("ignore", UserWarning)
-        euler = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_euler("ZYX", degrees=True)
-    return np.concatenate([j[:, 0] * UNITS_PER_METRE, euler.reshape(j.shape[0], -1)], axis=1)
+    translations = np.zeros((j.shape[0], NUM_JOINTS, 3))
+    translations[:, 0] = j[:, 0] * UNITS_PER_METRE
+    return channel_values(local, translations, [ROOT_CHANNELS] + [JOINT_CHANNELS] * (NUM_JOINTS - 1))
+
+
+def hierarchy_text(names, parents, offsets: np.ndarray, channels, end_sites=()) -> str:
+    """The HIERARCHY block of any skeleton whose joints are listed depth first (as a reader returns them).
+
+    ``offsets`` (J,3) and the ``end_sites`` ((joint, offset) pairs) are in file units; ``channels[j]`` is
+    joint j's channel list, written as given.
+    """
+    kids: list[list[int]] = [[] for _ in names]
+    for k, parent in enumerate(parents):
+        if parent >= 0:
+            kids[int(parent)].append(k)
+    ends: dict[int, list] = {}
+    for joint, offset in end_sites:
+        ends.setdefault(int(joint), []).append(offset)
+    lines = ["HIERARCHY"]
+    order: list[int] = []
+
+    def fmt(v) -> str:
+        return " ".join(f"{x:.6f}" for x in v)
+
+    def write(k: int, depth: int) -> None:
+        order.append(k)
+        pad = "  " * depth
+        lines.extend([f"{pad}{'ROOT' if parents[k] < 0 else 'JOINT'} {names[k]}", f"{pad}{{",
+                      f"{pad}  OFFSET {fmt(offsets[k])}"])
+        if channels[k]:
+            lines.append(f"{pad}  CHANNELS {len(channels[k])} {' '.join(channels[k])}")
+        for child in kids[k]:
+            write(child, depth + 1)
+        for end in ends.get(k, ()):
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {fmt(end)}", f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    for root in (k for k, parent in enumerate(parents) if parent < 0):
+        write(root, 0)
+    if order != list(range(len(names))):
+        raise ValueError("the joints must be listed depth first, each parent before its children")
+    return "\n".join(lines)
+
+
+def bvh_text(hierarchy: str, motion: np.ndarray, fps: float) -> str:
+    """A whole BVH file: ``hierarchy`` (from :func:`hierarchy_text`), then the MOTION block at ``fps``."""
+    rows = np.char.mod("%.6f", np.asarray(motion, dtype=np.float64))
+    body = "\n".join(" ".join(row) for row in rows)
+    return f"{hierarchy}\nMOTION\nFrames: {len(rows)}\nFrame Time: {1.0 / fps:.8f}\n{body}\n"
 
 
 def _hierarchy(offsets: np.ndarray) -> str:
     """The HIERARCHY block for rest offsets (22,3) in metres."""
-    lines = ["HIERARCHY"]
-
-    def fmt(v: np.ndarray) -> str:
-        return " ".join(f"{x * UNITS_PER_METRE:.6f}" for x in v)
-
-    def write(k: int, depth: int) -> None:
-        pad = "  " * depth
-        keyword = "ROOT" if PARENTS[k] < 0 else "JOINT"
-        chans = ROOT_CHANNELS if PARENTS[k] < 0 else JOINT_CHANNELS
-        lines.extend([f"{pad}{keyword} {JOINT_NAMES[k]}", f"{pad}{{", f"{pad}  OFFSET {fmt(offsets[k])}",
-                      f"{pad}  CHANNELS {len(chans)} {' '.join(chans)}"])
-        for child in CHILDREN[k]:
-            write(child, depth + 1)
-        if not CHILDREN[k]:
-            lines.extend([f"{pad}  End Site", f"{pad}  {{",
-                          f"{pad}    OFFSET {fmt(offsets[k] * END_SITE_FRACTION)}", f"{pad}  }}"])
-        lines.append(f"{pad}}}")
-
-    write(0, 0)
-    return "\n".join(lines)
+    order = list(FILE_ORDER)
+    position = {k: i for i, k in enumerate(order)}
+    parents = [position[PARENTS[k]] if PARENTS[k] >= 0 else -1 for k in order]
+    channels = [ROOT_CHANNELS if PARENTS[k] < 0 else JOINT_CHANNELS for k in order]
+    ends = [(position[k], offsets[k] * END_SITE_FRACTION * UNITS_PER_METRE) for k in order if not CHILDREN[k]]
+    return hierarchy_text([JOINT_NAMES[k] for k in order], parents, offsets[order] * UNITS_PER_METRE, channels, ends)
 
 
 def joints_to_bvh(joints: np.ndarray, *, fps: float = 20.0, offsets: np.ndarray | None = None) -> str:
@@ -170,10 +229,7 @@ def joints_to_bvh(joints: np.ndarray, *, fps: float = 20.0, offsets: np.ndarray 
     rest = rest_offsets(j) if offsets is None else np.asarray(offsets, dtype=np.float64)
     if rest.shape != (NUM_JOINTS, 3):
         raise ValueError(f"offsets must be ({NUM_JOINTS},3), got {rest.shape}")
-    motion = motion_channels(j, rest)
-    rows = np.char.mod("%.6f", motion)
-    body = "\n".join(" ".join(row) for row in rows)
-    return (f"{_hierarchy(rest)}\nMOTION\nFrames: {j.shape[0]}\nFrame Time: {1.0 / fps:.8f}\n{body}\n")
+    return bvh_text(_hierarchy(rest), motion_channels(j, rest), fps)
 
 
 def write_bvh(path: str | Path, joints: np.ndarray, *, fps: float = 20.0,

@@ -1,0 +1,179 @@
+"""Long takes (``lsgan generate --timeline``): one continuous motion from a list of ``prompt#frames`` segments.
+
+Each segment is generated on its own at its length plus ``overlap`` frames (the last at its length), all in one
+batch, so segment i is exactly what ``generate --prompts`` makes for the same ``prompt#length`` lines and seed.
+Consecutive segments are cross-faded over the overlap, and the joints are recovered once from the joined features.
+
+Why join in feature space: HumanML3D features are root-relative. Channels 0-2 are the root's yaw velocity and
+its linear velocity in the root's own heading frame, channel 3 its height, and the pose channels (positions,
+rotations, velocities) are expressed in that heading frame too; ``recover_from_ric`` integrates the yaw and the
+velocities from the first frame. A new segment's features therefore hold no absolute position or heading: joined
+and integrated once, it starts where and facing where the previous one stands, with nothing to estimate. Blending
+joints instead would need a rigid transform per segment (fitted from the last frames, noisy for turns) and a blend
+of positions that may be metres apart. In the blend every channel is a convex combination of the two segments'
+values, so the root's step and turn per frame at a seam never exceed the larger of the two motions' own.
+
+Layout, for frames n_i and overlap v (n_i > v): segment i fills frames [s_i, s_i + n_i) of the result,
+s_i = n_0 + ... + n_(i-1), total sum(n_i). Frames [s_i, s_i + v) for i > 0 blend the previous segment's v extra
+frames into segment i's first v frames with the raised-cosine weight w_k = (1 - cos(pi (k+1) / (v+1))) / 2 on
+segment i; every other frame is one segment's own features. ``overlap`` 0 is a hard cut (root still carried).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lsgan.data.features import recover_from_ric
+from lsgan.generation import Generation, Motion, Request
+
+DEFAULT_OVERLAP = 10
+MIN_FRAMES = 4  # what ``generate`` asks of a motion
+FORMAT = "'prompt#frames', e.g. 'walk forward#80'"
+
+
+class TimelineError(ValueError):
+    """A timeline that cannot be read; ``inline``: it was given on the command line, not in a file."""
+
+    def __init__(self, message: str, inline: bool) -> None:
+        super().__init__(message)
+        self.inline = inline
+
+
+@dataclass(frozen=True)
+class Segment:
+    text: str
+    frames: int
+    where: str  # where it was read, for messages: "FILE: line 3" or "--timeline: item 2"
+
+
+def parse_timeline(value: str) -> tuple[list[Segment], str | None]:
+    """(segments, the file read or None) of ``--timeline VALUE``.
+
+    VALUE naming an existing file is read as that file: one ``prompt#frames`` per line, no blank lines. Any other
+    VALUE holding '#' is the timeline itself, segments separated by ';' (a trailing ';' is allowed); anything else
+    is a file that does not exist.
+    """
+    path = Path(value)
+    if os.path.isfile(value):  # not Path.is_file: it raises on a name too long for the filesystem
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except UnicodeDecodeError:
+            raise TimelineError(f"{value}: not a UTF-8 text file", inline=False) from None
+        return _segments(lines, [f"{value}: line {n}" for n in range(1, len(lines) + 1)], value, False), value
+    if "#" not in value:
+        raise TimelineError(f"{value}: no such timeline file (an inline timeline holds '#': {FORMAT}; ...)",
+                            inline=False)
+    items = value.strip()
+    items = (items[:-1] if items.endswith(";") else items).split(";")
+    return _segments(items, [f"--timeline: item {n}" for n in range(1, len(items) + 1)], "--timeline", True), None
+
+
+def _segments(items: list[str], where: list[str], name: str, inline: bool) -> list[Segment]:
+    out = []
+    for item, at in zip(items, where):
+        item = item.strip()
+        text, hash_, frames = item.rpartition("#")
+        problem = ("is blank" if not item else "has no '#frames'" if not hash_ else
+                   "has no prompt before '#'" if not text.strip() else
+                   f"'{frames.strip()}' is not a whole number of frames" if not frames.strip().isdigit() else None)
+        if problem:
+            raise TimelineError(f"{at} {problem} (each segment is {FORMAT})", inline)
+        out.append(Segment(text.strip(), int(frames), at))
+    if not out:
+        raise TimelineError(f"{name}: no segments (each is {FORMAT})", inline)
+    return out
+
+
+def check_segments(segments: list[Segment], overlap: int, max_frames: int) -> None:
+    """ValueError naming the segment when one is shorter than the overlap (or 4 frames) or, with the overlap, longer
+    than the model decodes."""
+    if overlap < 0:
+        raise ValueError(f"overlap must be >= 0 frames, got {overlap}")
+    least = max(MIN_FRAMES, overlap + 1)
+    for i, s in enumerate(segments):
+        if s.frames < least:
+            raise ValueError(f"{s.where}: {s.frames} frames; a segment needs at least {least} "
+                             f"(4, and more than the overlap of {overlap})")
+        extra = overlap if i < len(segments) - 1 else 0
+        if s.frames + extra > max_frames:
+            raise ValueError(f"{s.where}: {s.frames} frames{f' + {extra} of overlap' if extra else ''} is more than "
+                             f"this model decodes at once ({max_frames}); split it into two segments")
+
+
+def segment_requests(segments: list[Segment], overlap: int) -> list[Request]:
+    """What is generated: each segment at its length plus the overlap into the next (the last at its length)."""
+    last = len(segments) - 1
+    return [Request(text=s.text, frames=s.frames + (overlap if i < last else 0)) for i, s in enumerate(segments)]
+
+
+def crossfade(overlap: int) -> np.ndarray:
+    """(overlap,) weights of the incoming segment over a seam: raised cosine, strictly between 0 and 1."""
+    k = np.arange(1, overlap + 1, dtype=np.float64)
+    return (1.0 - np.cos(math.pi * k / (overlap + 1))) / 2.0
+
+
+def join_features(parts: list[np.ndarray], frames: list[int], overlap: int) -> np.ndarray:
+    """One (sum(frames), 263) feature sequence from segments generated as :func:`segment_requests` asks."""
+    want = [n + (overlap if i < len(frames) - 1 else 0) for i, n in enumerate(frames)]
+    if [len(p) for p in parts] != want:
+        raise ValueError(f"segments of {[len(p) for p in parts]} frames; expected {want}")
+    w = crossfade(overlap)[:, None]
+    out = []
+    for i, (part, n) in enumerate(zip(parts, frames)):
+        own = np.array(part[:n], dtype=np.float64)
+        if i > 0 and overlap:
+            tail = parts[i - 1][frames[i - 1] : frames[i - 1] + overlap]
+            own[:overlap] = (1.0 - w) * tail + w * own[:overlap]
+        out.append(own)
+    return np.concatenate(out).astype(np.float32)
+
+
+def join_generation(result: Generation, segments: list[Segment], overlap: int, source: str | None) -> Generation:
+    """``result`` (one motion per segment, in order) as one joined motion, with the timeline for the manifest."""
+    frames = [s.frames for s in segments]
+    features = join_features([m.features for m in result.motions], frames, overlap)
+    starts = np.concatenate([[0], np.cumsum(frames)[:-1]]).tolist()
+    text = "; ".join(s.text for s in segments)
+    motion = Motion(Request(text=text, frames=len(features)), 0, features, recover_from_ric(features))
+    timeline = {
+        "source": str(source) if source else "inline",
+        "overlap": overlap,
+        "join": "features cross-faded over the overlap (raised cosine), root integrated once (lsgan.timeline)",
+        "segments": [{"text": s.text, "frames": s.frames, "start": int(a), "generated_frames": len(m.features)}
+                     for s, a, m in zip(segments, starts, result.motions)],
+    }
+    return dataclasses.replace(result, motions=[motion], timeline=timeline)
+
+
+def timeline_motion(segments: list[Segment], overlap: int, run: Callable[[list[Request]], Generation],
+                    max_frames: int, source: str | None = None) -> Generation:
+    """Check the segments, generate them with ``run`` (requests -> one motion each) and join them."""
+    check_segments(segments, overlap, max_frames)
+    return join_generation(run(segment_requests(segments, overlap)), segments, overlap, source)
+
+
+def generate_timeline(gan: str | os.PathLike, vae: str | os.PathLike | None, segments: list[Segment], *,
+                      overlap: int = DEFAULT_OVERLAP, source: str | None = None, runtime: str = "torch",
+                      int8: bool = False, seed: int = 0, device: str = "auto", text_encoder_path: str | None = None,
+                      batch_size: int = 256, steps: int | None = None,
+                      guidance: float | None = None) -> Generation:
+    """One motion of sum(frames) from ``segments``, by the generator (torch checkpoints, or an ONNX export's folder
+    with ``runtime='onnx'``). Deterministic under ``seed``, like ``generate``."""
+    if runtime == "onnx":
+        from lsgan.deploy.runtime import load
+
+        model = load(gan, variant="int8" if int8 else "fp32")
+        return timeline_motion(segments, overlap, lambda r: model.generate(r, seed=seed, batch_size=batch_size),
+                               model.max_frames, source)
+    from lsgan.generate import generate_loaded, load_models
+
+    loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path)
+    run = lambda r: generate_loaded(loaded, r, seed=seed, batch_size=batch_size, steps=steps,  # noqa: E731
+                                    guidance=guidance)
+    return timeline_motion(segments, overlap, run, loaded.max_frames, source)

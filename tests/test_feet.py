@@ -1,0 +1,125 @@
+"""Clean feet (lsgan.export.feet): foot locks by leg IK on generated motions, and ``lsgan export --fix-feet``."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_runs import lsgan, tiny_pipeline
+
+from lsgan.data.features import joints_to_features, recover_from_ric
+from lsgan.data.synthetic import generate as synthetic_clips
+from lsgan.eval.quality import foot_skating_ratio
+from lsgan.export.bvh import load_motion_joints
+from lsgan.export.feet import (
+    CHANNEL_JOINTS,
+    LEG_JOINTS,
+    contacts_from_features,
+    estimate_contacts,
+    fix_feet,
+    held_spans,
+)
+
+LEG_BONES = ((1, 4), (4, 7), (7, 10), (2, 5), (5, 8), (8, 11))
+OTHER = [k for k in range(22) if k not in LEG_JOINTS]
+
+
+def sliding_motions(n: int = 6) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Synthetic clips (planted feet) through the feature pipeline, then made to slide as a generator's do: the
+    whole body drifts 3 cm/frame (skating by GMD's 2.5 cm rule) while the contact channels still say the feet are planted."""
+    out = []
+    for clip in synthetic_clips(n, seed=3):
+        features = joints_to_features(clip.joints)
+        joints = recover_from_ric(features.astype(np.float64)).astype(np.float32)
+        drift = np.arange(len(joints), dtype=np.float32)[:, None] * np.float32([0.03, 0.0, 0.0])
+        out.append((joints + drift[:, None], features))
+    return out
+
+
+def check_fixed(joints: np.ndarray, fixed: np.ndarray, contacts: np.ndarray) -> int:
+    """The module's promises on one motion; returns the number of held frames checked."""
+    assert fixed.dtype == joints.dtype and np.isfinite(fixed).all()
+    assert np.array_equal(fixed[:, OTHER], joints[:, OTHER])  # bit for bit
+    for a, b in LEG_BONES:
+        before = np.linalg.norm(joints[:, b] - joints[:, a], axis=-1)
+        after = np.linalg.norm(fixed[:, b] - fixed[:, a], axis=-1)
+        assert np.abs(after - before).max() < 1e-4
+    checked = 0
+    spans = held_spans(joints, contacts)
+    for k, joint in enumerate(CHANNEL_JOINTS):
+        toe = CHANNEL_JOINTS[k | 1]
+        foot_length = np.linalg.norm(joints[:, toe] - joints[:, joint], axis=-1)
+        for first, last in spans[k]:
+            step = np.linalg.norm(np.diff(fixed[first:last + 1, joint][:, [0, 2]], axis=0), axis=-1)
+            # a held ankle whose toe is held too moves along the foot by the input's own foot-length change
+            slack = np.abs(np.diff(foot_length[first:last + 1])) if joint != toe else 0.0
+            assert (step < 0.002 + slack).all(), (joint, first, last, step.max())
+            checked += last - first
+    return checked
+
+
+def test_locks_sliding_feet() -> None:
+    held = 0
+    for joints, features in sliding_motions():
+        contacts = contacts_from_features(features)
+        fixed = fix_feet(joints, contacts)
+        held += check_fixed(joints, fixed, contacts)
+        assert foot_skating_ratio(fixed) <= foot_skating_ratio(joints)
+        assert not np.array_equal(fixed, joints)
+    assert held > 100
+
+
+def test_estimated_contacts_and_no_contact() -> None:
+    joints, _ = sliding_motions(2)[1]
+    fixed = fix_feet(joints, estimate_contacts(joints))
+    check_fixed(joints, fixed, estimate_contacts(joints))
+    assert np.array_equal(fix_feet(joints, np.zeros((len(joints), 4))), joints)
+
+
+def test_bad_input() -> None:
+    joints, _ = sliding_motions(1)[0]
+    with pytest.raises(ValueError, match="contacts must be"):
+        fix_feet(joints, np.ones((3, 4)))
+    bad = joints.copy()
+    bad[5, 3, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        fix_feet(bad, np.ones((len(joints), 4)))
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory) -> Path:
+    return tiny_pipeline(tmp_path_factory.mktemp("feet"),
+                         ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--num", 3,
+                          "--frames", 60, "-o", "gen"))
+
+
+@pytest.mark.slow
+def test_generated_motions_and_cli(pipe: Path) -> None:
+    gen = pipe / "gen"
+    for path in sorted(gen.glob("*_joints.npy")):
+        joints = np.load(path)
+        features = np.load(str(path).replace("_joints.npy", "_features.npy"))
+        contacts = contacts_from_features(features)
+        check_fixed(joints, fix_feet(joints, contacts), contacts)
+    for flag, out in (((), "on"), (("--no-fix-feet",), "off"), (("--fix-feet",), "forced")):
+        run = lsgan("export", "--bvh", gen, *flag, "-o", out, cwd=pipe)
+        assert run.returncode == 0, run.stderr
+    original = dict(load_motion_joints(gen))
+    # the BVH files: default and --fix-feet agree, --no-fix-feet is the plain export of the generated joints
+    for bvh in sorted((pipe / "on").glob("*.bvh")):
+        assert bvh.read_bytes() == (pipe / "forced" / bvh.name).read_bytes()
+    from lsgan.export.bvh import joints_to_bvh
+    from lsgan.export.motions import clean_feet
+    for name, joints in original.items():
+        stem = name.removesuffix("_joints")
+        assert (pipe / "off" / f"{stem}.bvh").read_text() == joints_to_bvh(joints)
+        fixed = dict(clean_feet(gen, [(name, joints)], None))[name]
+        assert (pipe / "on" / f"{stem}.bvh").read_text() == joints_to_bvh(fixed)
+        assert not np.array_equal(fixed, joints)
+    # a plain joints file: off by default, estimated contacts with --fix-feet
+    plain = pipe / "plain.npy"
+    np.save(plain, next(iter(original.values())))
+    assert lsgan("export", "--bvh", plain, "-o", "plain_off.bvh", cwd=pipe).returncode == 0
+    assert lsgan("export", "--bvh", plain, "--fix-feet", "-o", "plain_on.bvh", cwd=pipe).returncode == 0
+    assert (pipe / "plain_off.bvh").read_text() == joints_to_bvh(np.load(plain))
+    assert (pipe / "plain_on.bvh").read_text() != (pipe / "plain_off.bvh").read_text()
