@@ -44,6 +44,8 @@ def check_fixed(joints: np.ndarray, fixed: np.ndarray, contacts: np.ndarray) -> 
         before = np.linalg.norm(joints[:, b] - joints[:, a], axis=-1)
         after = np.linalg.norm(fixed[:, b] - fixed[:, a], axis=-1)
         assert np.abs(after - before).max() < 1e-4
+    for k in LEG_JOINTS:  # nothing is put below the floor (y = 0), or below where it already was
+        assert (fixed[:, k, 1] >= np.minimum(joints[:, k, 1], 0.0) - 1e-6).all(), k
     checked = 0
     spans = held_spans(joints, contacts)
     for k, joint in enumerate(CHANNEL_JOINTS):

@@ -165,6 +165,18 @@ def _toe(A_new, toe, v, wf) -> np.ndarray:
     return A_new + n * _unit((1.0 - wf) * v / max(n, 1e-12) + wf * _unit(toe - A_new))
 
 
+def _not_below(A, toe, lowest: float) -> np.ndarray:
+    """``toe`` turned about the ankle ``A`` (the foot keeps its length) so it is not below ``lowest``."""
+    if toe[1] >= lowest:
+        return toe
+    d = toe - A
+    n = np.linalg.norm(d)
+    dy = min(max(lowest - A[1], -n), n)
+    h = d[[0, 2]]
+    h = h / max(np.linalg.norm(h), 1e-12) * np.sqrt(max(n * n - dy * dy, 0.0))
+    return A + np.array([h[0], dy, h[1]])
+
+
 def _scan_side(j: np.ndarray, side: tuple[int, int, int, int], contacts: np.ndarray, floor: float | None):
     """Ankle and toe positions (T,3) of one leg, lock weights (T,) and the two locks (with their held spans)."""
     hip, knee, ankle, foot = side
@@ -176,8 +188,13 @@ def _scan_side(j: np.ndarray, side: tuple[int, int, int, int], contacts: np.ndar
 
     def place(t: int):
         A_des, toe, wa, wf = _targets(A[t], F[t], F[t] - A[t], *locks)
-        a_new = _place(H[t], A[t], A_des, reach[t])
-        return A_des, a_new, _toe(a_new, toe, F[t] - A[t], wf), max(wa, wf)
+        a_new = _place(H[t], A[t], A_des, reach[t]).copy()
+        if floor is not None:  # never lower than the floor, or than the original where it already was below
+            a_new[1] = max(a_new[1], min(floor, A[t, 1]))
+        f_new = _toe(a_new, toe, F[t] - A[t], wf)
+        if floor is not None:
+            f_new = _not_below(a_new, f_new, min(floor, F[t, 1]))
+        return A_des, a_new, f_new, max(wa, wf)
 
     for t in range(len(j)):
         for lock, c, X in zip(locks, contacts[t], (A, F)):
