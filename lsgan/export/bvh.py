@@ -213,12 +213,8 @@ def _hierarchy(offsets: np.ndarray) -> str:
     return hierarchy_text([JOINT_NAMES[k] for k in order], parents, offsets[order] * UNITS_PER_METRE, channels, ends)
 
 
-def joints_to_bvh(joints: np.ndarray, *, fps: float = 20.0, offsets: np.ndarray | None = None) -> str:
-    """BVH text for joint positions (T,22,3) in metres; ``offsets`` (22,3, metres) overrides the fitted rest pose.
-
-    The positions are reproduced exactly when the input's bones are rigid (up to the 6 printed decimals);
-    otherwise the rigid BVH skeleton follows every bone's direction with its mean length.
-    """
+def checked_motion(joints: np.ndarray, fps: float) -> np.ndarray:
+    """joints (T,22,3) as float64, or ValueError for a wrong shape, non-finite values or a non-positive fps."""
     j = np.asarray(joints, dtype=np.float64)
     if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or j.shape[0] == 0:
         raise ValueError(f"joints must be (T,{NUM_JOINTS},3) with T > 0, got {j.shape}")
@@ -226,6 +222,16 @@ def joints_to_bvh(joints: np.ndarray, *, fps: float = 20.0, offsets: np.ndarray 
         raise ValueError("joints hold NaN or infinite values")
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps}")
+    return j
+
+
+def joints_to_bvh(joints: np.ndarray, *, fps: float = 20.0, offsets: np.ndarray | None = None) -> str:
+    """BVH text for joint positions (T,22,3) in metres; ``offsets`` (22,3, metres) overrides the fitted rest pose.
+
+    The positions are reproduced exactly when the input's bones are rigid (up to the 6 printed decimals);
+    otherwise the rigid BVH skeleton follows every bone's direction with its mean length.
+    """
+    j = checked_motion(joints, fps)
     rest = rest_offsets(j) if offsets is None else np.asarray(offsets, dtype=np.float64)
     if rest.shape != (NUM_JOINTS, 3):
         raise ValueError(f"offsets must be ({NUM_JOINTS},3), got {rest.shape}")

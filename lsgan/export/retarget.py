@@ -28,9 +28,9 @@ from scipy.spatial.transform import Rotation
 from lsgan.data.bvh import POSITION_CHANNELS, ROTATION_CHANNELS, Bvh, read_bvh
 from lsgan.data.clip import ClipError
 from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices
-from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS
+from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.export.body import _continue_twist as continue_twist
-from lsgan.export.bvh import bvh_text, channel_values, hierarchy_text, kabsch, shortest_arc
+from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text, kabsch, shortest_arc
 from lsgan.io import atomic_file
 
 _LEGS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"))
@@ -158,13 +158,7 @@ def solve(q: np.ndarray, root: np.ndarray, rig: Bvh, plan: Plan) -> tuple[np.nda
 def retarget(joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0) -> Bvh:
     """Our motion (T,22,3: metres, Y up) on ``rig``'s skeleton: a :class:`Bvh` with the rig's hierarchy and a
     new MOTION block at ``fps``. Raises ValueError for a bad motion, ClipError for a map that does not fit."""
-    j = np.asarray(joints, dtype=np.float64)
-    if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or j.shape[0] == 0:
-        raise ValueError(f"joints must be (T,{NUM_JOINTS},3) with T > 0, got {j.shape}")
-    if not np.isfinite(j).all():
-        raise ValueError("joints hold NaN or infinite values")
-    if not fps > 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    j = checked_motion(joints, fps)
     plan = plan_rig(rig, jmap)
     rest = apply_joint_map(rest_positions(rig.parents, rig.offsets)[None], rig.names, jmap, rig.path)
     ours = leg_length(j)
