@@ -701,9 +701,9 @@ Calling the graphs from Python, C++ or C# without lsgan: docs/deploy.md.
 @click.argument("run", type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(), help="Folder for the graphs, tokenizer and manifest.json.")
 @click.option("--onnx", "as_onnx", is_flag=True, help="ONNX graphs (the one format so far).")
-@click.option("--int8", is_flag=True, help="Also write a decoder with int8 feed-forward products (dynamic "
-              "quantisation, per-channel weights; everything else stays fp32) and measure its joint error against "
-              "fp32 on 100 fixed motions.")
+@click.option("--int8", is_flag=True, help="Also write a decoder with int8 feed-forward and self-attention "
+              "products (dynamic quantisation, per-channel weights; everything else stays fp32) and measure its joint "
+              "error against fp32 on 100 fixed motions.")
 @click.option("--vae", type=click.Path(exists=True), help="The GAN's VAE (default: the one its latent cache was "
               "encoded with, as its config.json records).")
 @click.option("--text-encoder-path", type=click.Path(exists=True, file_okay=False),
@@ -746,6 +746,7 @@ Examples:
   lsgan export --mp4 --title "a wave" out/000_wave_joints.npy --fps 30 -o wave.mp4
   lsgan export --bvh out/ --rig character.bvh --preset mixamo -o rig/   # on your character's skeleton
   lsgan export --bvh walk.npy --rig hero.bvh --joint-map hero_map.json -o walk_hero.bvh
+  lsgan export --glb out/ --rig character.bvh --preset bandai -o rig_glb/   # a skinned armature of your rig
 """)
 @click.argument("input", type=click.Path(exists=True))
 @click.option("--glb", "as_glb", is_flag=True, help="Animated glTF binary: named joint nodes, a visible skeleton, one animation.")
@@ -762,8 +763,9 @@ Examples:
 @click.option("--fit-iterations", default=100, show_default=True, type=click.IntRange(1),
               help="--body-model: L-BFGS iterations of the batched pose refinement.")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
-@click.option("--rig", type=click.Path(exists=True, dir_okay=False), help="--bvh: write the motion on this BVH "
-              "character's skeleton (its hierarchy, rest offsets, channel order and units), by IK.")
+@click.option("--rig", type=click.Path(exists=True, dir_okay=False), help="--bvh/--glb: write the motion on this "
+              "BVH character's skeleton by IK (BVH: its hierarchy, rest offsets, channel order and units; GLB: its "
+              "hierarchy as a skinned armature in metres).")
 @click.option("--joint-map", type=click.Path(exists=True, dir_okay=False),
               help="--rig: the JSON joint map naming the rig's joint for each SMPL joint (the importer's format).")
 @click.option("--preset", type=click.Choice(["bandai", "cmu", "mixamo"]), help="--rig: a built-in joint map.")
@@ -784,8 +786,11 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
         raise click.UsageError("choose one format: --glb, --bvh, --gif or --mp4")
     if body_model is not None and not as_glb:
         raise click.UsageError("--body-model goes with --glb")
-    if rig is not None and not as_bvh:
-        raise click.UsageError("--rig goes with --bvh (a GLB on your rig is not available yet)")
+    if rig is not None and not (as_bvh or as_glb):
+        raise click.UsageError("--rig goes with --bvh or --glb")
+    if rig is not None and body_model is not None:
+        raise click.UsageError("--body-model and --rig do not go together: the body fit is SMPL's skeleton, --rig is "
+                               "yours")
     if rig is not None and (joint_map is None) == (preset is None):
         raise click.UsageError("--rig needs one joint map: --joint-map MAP.json or --preset bandai|cmu|mixamo")
     if rig is None and (joint_map is not None or preset is not None):
@@ -990,9 +995,10 @@ in flight and exits 0.
               help="Requests admitted at once; more get 503 with Retry-After.")
 @click.option("--timeout", "timeout_s", default=10.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
               help="Seconds a request may take; then 503.")
-@click.option("--gather-ms", default=5.0, show_default=True, type=click.FloatRange(0, 1000),
+@click.option("--gather-ms", default=1.0, show_default=True, type=click.FloatRange(0, 1000),
               help="How long a pass waits for more requests to batch with the first.")
-@click.option("--max-batch", default=32, show_default=True, type=click.IntRange(1), help="Motions in one engine pass.")
+@click.option("--max-batch", default=16, show_default=True, type=click.IntRange(1),
+              help="Motions in one engine pass (smaller passes let answers go out while the next pass runs).")
 @click.option("--store-size", default=256, show_default=True, type=click.IntRange(1),
               help="Motions kept for download (least recently used dropped first).")
 def serve(gan, vae, model, int8, host, port, api_key, device, text_encoder_path, text_cache, **limits) -> None:

@@ -135,3 +135,43 @@ def test_blender_imports_the_skeleton_glb_as_an_armature(motion, tmp_path):
         ours = np.array([heads[name] for name in JOINT_NAMES])
         expected = joints[f][:, [0, 2, 1]] * [1.0, -1.0, 1.0]  # glTF (x, y, z) -> Blender (x, -z, y)
         assert np.abs(ours - expected).max() < 1e-3, (f, np.abs(ours - expected).max())
+
+
+@pytest.mark.parametrize("rig", ["mixamo", "bandai"])
+def test_blender_imports_the_rig_glb_as_an_armature(motion, tmp_path, request, rig):
+    """``--glb --rig``: one armature with the rig's bones (its names) deforming one mesh; with the printed settings
+    the whole motion plays at its speed; posed at a frame, each bone's head is where the rig BVH's forward
+    kinematics puts the joint (the same solve), within 1 mm. The rigs: test_retarget's Mixamo-named one and a real
+    Bandai file (../shared)."""
+    from test_retarget import RIG, _mixamo_rig
+
+    from lsgan.data.bvh import forward_kinematics, read_bvh
+
+    if rig == "bandai":
+        rig_path = request.getfixturevalue("bandai_dir") / "data" / f"{RIG}.bvh.gz"
+    else:
+        rig_path = tmp_path / "rig.bvh"
+        _mixamo_rig(rig_path)
+    for fmt in ("glb", "bvh"):
+        run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", f"--{fmt}", str(motion), "--rig",
+                              str(rig_path), "--preset", rig, "-o", str(tmp_path / f"m.{fmt}")],
+                             capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+    assert "Blender:" in run.stderr and "20 fps" in run.stderr
+    good = _blender("glb", tmp_path / "m.glb", 20.0)["settings"]
+    assert good["rate"] == 20 and good["keys"] == pytest.approx([0, FRAMES - 1], abs=1e-3)
+    assert good["start"] <= good["keys"][0] and good["end"] >= good["keys"][1]
+
+    frames = [0, 150, FRAMES - 1]
+    out = subprocess.run([BLENDER_PYTHON, "-c", ARMATURE_SCRIPT, str(tmp_path / "m.glb"), json.dumps(frames)],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    report = json.loads([x for x in out.stdout.splitlines() if x.startswith("REPORT")][0][len("REPORT"):])
+    bvh = read_bvh(tmp_path / "m.bvh")
+    assert report["armatures"] == 1 and report["meshes"] == 1 and report["deformed"] == [True]
+    assert sorted(report["bones"]) == sorted(bvh.names)
+    fk = forward_kinematics(bvh)[frames] * 0.01  # both rigs: centimetres, Y up
+    heads = np.array([[report["heads"][str(f)][name] for name in bvh.names] for f in frames])
+    error = np.abs(heads - fk[..., [0, 2, 1]] * [1.0, -1.0, 1.0]).max()  # glTF (x, y, z) -> Blender (x, -z, y)
+    print(f"{rig}: {len(bvh.names)} bones, Blender's bone heads vs the rig BVH's joints: max {error * 1000:.4f} mm")
+    assert error < 1e-3

@@ -1,4 +1,4 @@
-"""Clean feet (lsgan.export.feet): foot locks by leg IK on generated motions, and ``lsgan export --fix-feet``."""
+"""Clean feet (lsgan.export.feet): plants and steps by leg IK on generated motions, and ``lsgan export --fix-feet``."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,32 +8,54 @@ import pytest
 from cli_runs import lsgan, tiny_pipeline
 
 from lsgan.data.features import joints_to_features, recover_from_ric
+from lsgan.data.sources.bvh import BvhSource
 from lsgan.data.synthetic import generate as synthetic_clips
 from lsgan.eval.quality import foot_skating_ratio
 from lsgan.export.bvh import load_motion_joints
 from lsgan.export.feet import (
     CHANNEL_JOINTS,
     LEG_JOINTS,
+    REACH,
+    SIDES,
+    TOE_LIFT,
     contacts_from_features,
     estimate_contacts,
     fix_feet,
     held_spans,
+    stance_frames,
 )
 
 LEG_BONES = ((1, 4), (4, 7), (7, 10), (2, 5), (5, 8), (8, 11))
 OTHER = [k for k in range(22) if k not in LEG_JOINTS]
 
 
-def sliding_motions(n: int = 6) -> list[tuple[np.ndarray, np.ndarray]]:
+def sliding_motions(n: int = 6, drift: float = 0.03) -> list[tuple[np.ndarray, np.ndarray]]:
     """Synthetic clips (planted feet) through the feature pipeline, then made to slide as a generator's do: the
-    whole body drifts 3 cm/frame (skating by GMD's 2.5 cm rule) while the contact channels still say the feet are planted."""
+    whole body drifts ``drift`` m/frame (3 cm: skating by GMD's 2.5 cm rule; the Bandai model glides at ~5) while
+    the contact channels still say the feet are planted."""
     out = []
     for clip in synthetic_clips(n, seed=3):
         features = joints_to_features(clip.joints)
         joints = recover_from_ric(features.astype(np.float64)).astype(np.float32)
-        drift = np.arange(len(joints), dtype=np.float32)[:, None] * np.float32([0.03, 0.0, 0.0])
-        out.append((joints + drift[:, None], features))
+        shift = np.arange(len(joints), dtype=np.float32)[:, None] * np.float32([drift, 0.0, 0.0])
+        out.append((joints + shift[:, None], features))
     return out
+
+
+def floor_travel(joints: np.ndarray, contacts: np.ndarray) -> tuple[float, float]:
+    """Horizontal toe travel (m) on frame pairs marked in contact (ankle or toe channel of the side) with the toe
+    within 2 cm of its lowest height in both frames (a slide, not a step), and the share of those marked pairs in
+    which the toe moves less than 5 mm (as benchmarks/feet.py measures)."""
+    travel = still = pairs = 0.0
+    for side, toe in enumerate((10, 11)):
+        either = contacts[:, 2 * side] | contacts[:, 2 * side + 1]
+        marked = either[:-1] & either[1:]
+        step = np.linalg.norm(np.diff(joints[:, toe][:, [0, 2]].astype(np.float64), axis=0), axis=-1)
+        low = joints[:, toe, 1] - joints[:, toe, 1].min() < 0.02
+        travel += step[marked & low[:-1] & low[1:]].sum()
+        still += (step[marked] < 0.005).sum()
+        pairs += marked.sum()
+    return travel, still / max(pairs, 1)
 
 
 def check_fixed(joints: np.ndarray, fixed: np.ndarray, contacts: np.ndarray) -> int:
@@ -46,6 +68,11 @@ def check_fixed(joints: np.ndarray, fixed: np.ndarray, contacts: np.ndarray) -> 
         assert np.abs(after - before).max() < 1e-4
     for k in LEG_JOINTS:  # nothing is put below the floor (y = 0), or below where it already was
         assert (fixed[:, k, 1] >= np.minimum(joints[:, k, 1], 0.0) - 1e-6).all(), k
+    for hip, knee, ankle, _ in SIDES:  # no leg is stretched past REACH, or past the original's own stretch
+        legs = sum(np.linalg.norm(joints[:, b] - joints[:, a], axis=-1) for a, b in ((hip, knee), (knee, ankle)))
+        limit = np.maximum(REACH * legs, np.linalg.norm(joints[:, ankle] - joints[:, hip], axis=-1))
+        assert (np.linalg.norm(fixed[:, ankle] - fixed[:, hip], axis=-1) <= limit + 1e-5).all()
+    assert np.array_equal(fix_feet(joints, contacts), fixed)  # deterministic
     checked = 0
     spans = held_spans(joints, contacts)
     for k, joint in enumerate(CHANNEL_JOINTS):
@@ -69,6 +96,56 @@ def test_locks_sliding_feet() -> None:
         assert foot_skating_ratio(fixed) <= foot_skating_ratio(joints)
         assert not np.array_equal(fixed, joints)
     assert held > 100
+
+
+def test_gliding_feet_plant_and_step() -> None:
+    """A body gliding at 3 and 5 cm/frame: the feet stay still on most contact frames and catch up by steps that
+    lift the toe, not by sliding along the floor."""
+    before = after = 0.0
+    for drift in (0.03, 0.05):
+        for joints, features in sliding_motions(6, drift):
+            contacts = contacts_from_features(features)
+            fixed = fix_feet(joints, contacts)
+            check_fixed(joints, fixed, contacts)
+            (slid, still_before), (slid_after, still) = floor_travel(joints, contacts), floor_travel(fixed, contacts)
+            assert slid_after < 0.5 * slid and still > still_before + 0.3
+            before, after = before + slid, after + slid_after
+            spans = held_spans(joints, contacts)
+            for toe, held in ((10, spans[1]), (11, spans[3])):  # each step between two plants lifts the toe
+                for (_, a), (b, _) in zip(held[:-1], held[1:]):
+                    length = np.linalg.norm(fixed[b, toe, [0, 2]] - fixed[a, toe, [0, 2]])
+                    lift = fixed[a + 1: b, toe, 1].max() - max(fixed[a, toe, 1], fixed[b, toe, 1])
+                    assert length < 0.1 or lift > 0.3 * TOE_LIFT * length, (toe, a, b, length, lift)
+    assert after < 0.15 * before
+
+
+def test_feet_take_turns() -> None:
+    """Both feet marked in contact all along while the body glides: they step in turn (a walk, not a hop)."""
+    joints, features = sliding_motions(6, 0.05)[5]
+    contacts = contacts_from_features(features)
+    assert stance_frames(joints, contacts).all()
+    spans = held_spans(joints, contacts)
+    held = np.zeros((len(joints), 2), dtype=bool)
+    for side, toe_spans in enumerate((spans[1], spans[3])):
+        assert len(toe_spans) >= 3  # each foot steps
+        for a, b in toe_spans:
+            held[a: b + 1, side] = True
+    assert (~held.any(axis=1)).mean() < 0.1
+
+
+@pytest.mark.parametrize("clip", ["dataset-2_walk_normal_001", "dataset-2_walk-turn-left_normal_001"])
+def test_real_bandai_walk(bandai_dir, clip: str) -> None:
+    """A real walk (Bandai mocap through the importer and the features) already plants its feet: the fix stays
+    close to it (legs within 2 cm on average, GMD's ratio about the same) and still removes most of its slides."""
+    path = bandai_dir / "data" / f"{clip}.bvh.gz"
+    features = joints_to_features(BvhSource(root=str(path), preset="bandai", mirror=False).load(str(path))[0].joints)
+    joints = recover_from_ric(features.astype(np.float64)).astype(np.float32)
+    contacts = contacts_from_features(features)
+    fixed = fix_feet(joints, contacts)
+    check_fixed(joints, fixed, contacts)
+    assert np.linalg.norm(fixed[:, list(LEG_JOINTS)] - joints[:, list(LEG_JOINTS)], axis=-1).mean() < 0.02
+    assert foot_skating_ratio(fixed) < foot_skating_ratio(joints) + 0.03
+    assert floor_travel(fixed, contacts)[0] < 0.5 * floor_travel(joints, contacts)[0]
 
 
 def test_estimated_contacts_and_no_contact() -> None:

@@ -1,4 +1,4 @@
-"""Clean feet: hold each foot still while it is in contact, by IK on the leg only (what ``export --fix-feet`` runs).
+"""Clean feet: plant each foot while it is in contact and step it on, by IK on the leg only (``export --fix-feet``).
 
 Pure numpy on joint positions (T,22,3): HumanML3D joint order, Y up, metres, the floor at y = 0 (as
 :mod:`lsgan.eval.quality` reads it). Contacts are (T,4) per frame for [left ankle 7, left foot 10, right
@@ -7,25 +7,37 @@ ankle 8, right foot 11], the order of HumanML3D's feature channels 259-262.
 Contacts. A feature row t says whether the joint moved less than sqrt(0.002) = 4.5 cm between frames t and
 t+1 (:func:`lsgan.data.features.foot_contacts`), so frames t and t+1 are both in contact
 (:func:`frame_contacts`). :func:`contacts_from_features` reads a generated motion's own channels (> 0.5);
-:func:`estimate_contacts` applies the same rule to the joints themselves, so a plain joints file gets the
-contacts its features would carry. Both rules are speed only: a foot held still in the air (a kick at its
-apex) counts too, so :func:`fix_feet` keeps a contact only where the joint is also within ``CONTACT_HEIGHT``
-(5 cm, GMD's rule) of its lowest height in the clip.
+:func:`estimate_contacts` applies the same rule to the joints themselves. A side is in stance on a frame where
+its ankle or toe channel says contact, that joint is within ``CONTACT_HEIGHT`` (5 cm, GMD's rule) of its lowest
+height in the clip (a foot held still in the air is no contact) and the toe moves less than ``STANCE_SPEED``;
+gaps of up to ``GAP_FRAMES`` frames are bridged.
 
-Locking (causal, per side). When a contact starts, the joint's anchor is where the fixed motion has it at
-that frame (so nothing jumps), lifted to the floor if it is below it; while the contact lasts the joint stays
-on its anchor; when it ends the joint blends back to the original over ``BLEND_FRAMES`` frames (smoothstep).
-The ankle goes to its anchor (or, with only the toe in contact, to where the original foot puts the locked
-toe), the foot joint keeps its length and turns towards its anchor, or keeps the original direction when
-free. The leg is solved by two-bone IK: the hip stays, thigh and shin keep their lengths of that frame, the
-knee stays in the plane of the original bend (a 1 cm forward pull decides a straight leg's bend). When the
-body moves further than the leg reaches (``REACH`` of the stretched leg; generated motions that glide do),
-the side's locks are released and may start again after the blend: no joint is ever pulled off the hip.
+Plants and steps (per side, planned over the whole clip). A stance run starts with a plant where the toe
+comes down and to rest within ``ENTRY_FRAMES`` (the foot eases onto it), lifted onto the floor. A plant holds
+the toe on its anchor and the ankle on its anchor at the frame's foot length; the heel turns up about the toe
+(push-off) as far as the original's does where its ankle is off the ground, and as far as the leg needs to stay
+within ``REACH`` of its stretched length. A generated body often glides on while its
+feet are marked in contact; when the plant cannot hold any longer (the leg needs the heel up more than
+``MAX_HEEL``, or the toe is ``MAX_OFFSET`` from the original's), the foot steps: it lands
+:func:`swing_frames` later on a new anchor, the original foot's place up to ``LEAD_FRAMES`` ahead, chosen so
+that the next plant holds longest. The right foot is planned after the left and ends each plant, where it can,
+so that its step does not overlap the left foot's (a walk, not a hop). A plant also lets go where the original
+toe rises ``LIFT_OFF`` above its anchor; at the end of a stance run the foot's offset from the original eases
+out, no faster than ``CATCH_UP`` beyond the original's own speed. Moves follow a minimum-jerk path (quintic,
+at rest at both ends; the ankle carries its push-off speed and eases it out) and lift toe and ankle by
+``TOE_LIFT`` times their horizontal length at mid-swing, on a bump at rest at both ends. The figures are
+Bandai walks': their toe rises 8.5% of the step's length, and moves for 6.3 + 3.3 d frame pairs on a step of
+d metres (5.3 + 3.3 d frames in the air).
 
-Only knees, ankles and foot joints change (4, 5, 7, 8, 10, 11), and only on frames within a lock or its
-blend; every other value is returned bit for bit.
+The knee is solved by two-bone IK: the hip stays, thigh and shin keep their lengths of that frame, the knee
+stays in the plane of the original bend (a 1 cm forward pull decides a straight leg's bend). Only knees,
+ankles and foot joints change (4, 5, 7, 8, 10, 11), and only on frames of a plant or step; every other value
+is returned bit for bit. No ankle or toe is put below the floor, or below where it already was. The result
+depends only on the input (no randomness).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -36,13 +48,22 @@ from lsgan.data.skeleton import FACE_JOINTS, NUM_JOINTS
 CHANNEL_JOINTS = (7, 10, 8, 11)  # the contact channels' joints: left ankle, left foot, right ankle, right foot
 SIDES = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot joint of the left and right leg
 LEG_JOINTS = (4, 5, 7, 8, 10, 11)  # the joints fix_feet may move
-BLEND_FRAMES = 5  # frames to blend a released joint back to the original (0.25 s at 20 fps)
 CONTACT_HEIGHT = 0.05  # m above the joint's lowest height in the clip: higher is not a ground contact
-REACH = 0.995  # a lock holds while the ankle stays within this share of the stretched leg (or the original's)
-MAX_OFFSET = 0.15  # m: a lock holds while its anchor stays within this horizontal distance of the original joint
-CATCH_UP_SPEED = 0.02  # m/frame: the most a released joint moves faster than the original while blending back
+STANCE_SPEED = 0.1  # m/frame: a toe moving faster is swinging, whatever its channel says (the rule is 4.5 cm)
+GAP_FRAMES = 2  # stance gaps this short are bridged
+ENTRY_FRAMES, ENTRY_WAIT = 4, 0.005  # a run's first plant: where the toe rests this soon (waiting: m a frame)
+REACH = 0.99  # share of the stretched leg a planted leg may use (Bandai walks in stance: 0.98-1.0 at most)
+MAX_HEEL = np.radians(40.0)  # the most a planted heel turns up about the toe (Bandai push-offs: 40-55 degrees)
+MAX_OFFSET = 0.3  # m: a plant holds while its toe stays within this horizontal distance of the original toe
+LEAD_FRAMES = 12  # a step's landing is the original foot's place up to this many frames after it lands
+SWING_FRAMES = (5, 11)  # the fewest and most frames a step is in the air
+SWING_BASE, SWING_PER_M = 5.3, 3.3  # a step of d metres is in the air SWING_BASE + SWING_PER_M * d frames
+LIFT_OFF = 0.015  # m: a plant lets go where the original toe rises this far above its anchor
+CATCH_UP = 0.05  # m/frame: the most a foot moves faster than the original while rejoining it
+TOE_LIFT = 0.085  # lift of toe and ankle at mid-swing, as a share of the step's horizontal length
 KNEE_PULL = 0.01  # m: forward pull that decides which way a straight leg bends
 _STRAIGHT = 0.02  # m: a knee closer than this to the hip-ankle line counts as (nearly) straight
+_UP = np.array([0.0, 1.0, 0.0])
 
 
 def frame_contacts(pairs: np.ndarray, frames: int) -> np.ndarray:
@@ -74,6 +95,23 @@ def ground_contacts(joints: np.ndarray, contacts: np.ndarray) -> np.ndarray:
     return np.asarray(contacts, dtype=bool) & (y - y.min(axis=0) < CONTACT_HEIGHT)
 
 
+def stance_frames(joints: np.ndarray, contacts: np.ndarray) -> np.ndarray:
+    """Per-side stance (T,2) for the left and right foot (module docstring): what :func:`fix_feet` plants."""
+    j = _check(joints)
+    g = ground_contacts(j, contacts)
+    step = np.linalg.norm(np.diff(j[:, [10, 11]][..., [0, 2]].astype(np.float64), axis=0), axis=-1)
+    slow = np.ones((len(j), 2), dtype=bool)
+    slow[1:] &= step < STANCE_SPEED
+    slow[:-1] &= step < STANCE_SPEED
+    stance = (g[:, [0, 2]] | g[:, [1, 3]]) & slow
+    for s in range(2):
+        edges = np.flatnonzero(np.diff(np.r_[0, stance[:, s].astype(np.int8), 0]))
+        for end, start in zip(edges[1:-1:2], edges[2::2]):  # a gap [end, start) between two runs
+            if start - end <= GAP_FRAMES:
+                stance[end:start, s] = True
+    return stance
+
+
 def _check(joints: np.ndarray) -> np.ndarray:
     j = np.asarray(joints)
     if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or len(j) < 2:
@@ -87,137 +125,223 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
-def _blend(k: int, n: int) -> float:
-    """Weight of a released joint's anchor k frames after its lock ended (1 -> 0 over n frames, smoothstep)."""
-    if k > n:
-        return 0.0
-    s = k / (n + 1)
-    return 1.0 - s * s * (3.0 - 2.0 * s)
+def _flat(v: np.ndarray) -> np.ndarray:
+    """Horizontal length of (...,3) vectors."""
+    return np.linalg.norm(v[..., [0, 2]], axis=-1)
 
 
-def catch_up_frames(offset: float) -> int:
-    """Frames to blend a joint ``offset`` metres from the original back: BLEND_FRAMES, more when the smoothstep's
-    peak speed (1.5 offset / (n + 1)) would be over CATCH_UP_SPEED."""
-    return max(BLEND_FRAMES, int(np.ceil(1.5 * offset / CATCH_UP_SPEED)) - 1)
+def swing_frames(distance: float) -> int:
+    """Frames a step of ``distance`` metres spends in the air (Bandai walks' swing phases, SWING_FRAMES bounds)."""
+    return int(np.clip(round(SWING_BASE + SWING_PER_M * distance), *SWING_FRAMES))
 
 
-class _Lock:
-    """One joint's lock: its anchor, how many frames since it was released, and the frames it held."""
+class _Leg:
+    """One leg's original joints (float64) and lengths, and the geometry of a planted foot."""
 
-    def __init__(self) -> None:
-        self.anchor = np.zeros(3)
-        self.held = False
-        self.since = BLEND_FRAMES + 1  # frames since release (past the blend: free)
-        self.frames = BLEND_FRAMES  # length of the current blend
-        self.cooldown = 0  # frames before a reach-released lock may start again
-        self.spans: list[tuple[int, int]] = []
+    def __init__(self, j: np.ndarray, side: tuple[int, int, int, int], heel_up: np.ndarray, floor: float | None):
+        self.H, self.K, self.A, self.F = (j[:, k].astype(np.float64) for k in side)
+        self.foot = np.linalg.norm(self.F - self.A, axis=-1)
+        self.pitch = np.arcsin(np.clip((self.A - self.F)[:, 1] / np.maximum(self.foot, 1e-12), -1.0, 1.0))
+        self.heel_up = heel_up  # (T,) frames whose ankle is off the ground: a plant follows the original's heel
+        legs = np.linalg.norm(self.K - self.H, axis=-1) + np.linalg.norm(self.A - self.K, axis=-1)
+        self.reach = np.maximum(REACH * legs, np.linalg.norm(self.A - self.H, axis=-1))
+        self.floor = floor
 
-    @property
-    def weight(self) -> float:
-        return 1.0 if self.held else _blend(self.since, self.frames)
+    def anchor(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """Ankle and toe of the original at ``frame``, lifted onto the floor: where a plant holds the foot."""
+        a, t = self.A[frame].copy(), self.F[frame].copy()
+        if self.floor is not None:
+            a[1], t[1] = max(a[1], self.floor), max(t[1], self.floor)
+        return a, t
 
-    def release(self, t: int, frames: int = BLEND_FRAMES, cooldown: int = 0) -> None:
-        """Let go at frame t (a blend of ``frames`` starts); ``cooldown`` frames pass before it may lock again."""
-        self.cooldown = max(self.cooldown, cooldown)
-        if self.held:
-            self.held, self.since, self.frames = False, 1, frames
-            first = self.spans.pop()[0]
-            if first <= t - 1:
-                self.spans.append((first, t - 1))
+    def heel(self, frames: np.ndarray, ankle: np.ndarray, toe: np.ndarray):
+        """Ankles (N,3) of the foot planted on (ankle, toe) over ``frames`` (anchors (3,) or (N,3)), the angle (N,)
+        the leg's reach needs the heel turned up (inf: no angle will do), and the angle it is turned.
 
-    def step(self, t: int, contact: bool, position: np.ndarray) -> None:
-        """Advance to frame t (``position``: the original joint's): end a finished contact, count blend frames."""
-        if self.held and not contact:
-            self.release(t, catch_up_frames(np.linalg.norm((self.anchor - position)[[0, 2]])))
-        elif not self.held:
-            self.since += 1 if t else 0
-            self.cooldown = max(self.cooldown - 1, 0)
+        The ankle sits on the anchor's direction from the toe at the frame's foot length, turned up about the toe
+        (in the foot's vertical plane) by the smallest angle that brings it within the leg's reach, or by as much
+        as the original's heel is up where its ankle is off the ground, whichever is more.
+        """
+        n, r, g = self.foot[frames], self.reach[frames], toe - self.H[frames]
+        e1 = _unit(ankle - toe)
+        e2 = _unit(_UP - e1[..., 1:2] * e1)
+        b, c = np.sum(g * e1, axis=-1), np.sum(g * e2, axis=-1)
+        k = (r * r - np.sum(g * g, axis=-1) - n * n) / (2.0 * np.maximum(n, 1e-12))
+        ratio = k / np.maximum(np.hypot(b, c), 1e-12)  # |ankle - hip| <= r  <=>  b cos + c sin <= k
+        turn = np.mod(np.arctan2(c, b) + np.arccos(np.clip(ratio, -1.0, 1.0)), 2.0 * np.pi)
+        need = np.where(b <= k, 0.0, np.where(ratio < -1.0, np.inf, turn))
+        own = np.where(self.heel_up[frames], np.maximum(self.pitch[frames] - np.arcsin(e1[..., 1]), 0.0), 0.0)
+        a = np.minimum(np.maximum(need, own), np.pi)
+        return toe + n[:, None] * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2), need, a
 
-    def start(self, t: int, position: np.ndarray, floor: float | None) -> None:
-        self.anchor = position.copy()
-        if floor is not None:
-            self.anchor[1] = max(self.anchor[1], floor)
-        self.held, self.since = True, 0
-        self.spans.append((t, t))
+    def plant_ends(self, firsts: np.ndarray, stop: int, ankles: np.ndarray, toes: np.ndarray) -> np.ndarray:
+        """For plants from ``firsts`` (P,) on anchors (P,3): the last frame each holds, at most ``stop`` (first - 1:
+        none). A plant holds while the leg needs the heel up at most MAX_HEEL, its toe is within MAX_OFFSET of the
+        original toe, and the original toe has not risen LIFT_OFF above it."""
+        firsts = np.asarray(firsts)
+        counts = stop - firsts + 1
+        rows = np.repeat(np.arange(len(firsts)), counts)
+        frames = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts) + firsts[rows]
+        _, need, _ = self.heel(frames, ankles[rows], toes[rows])
+        bad = (need > MAX_HEEL) | (_flat(self.F[frames] - toes[rows]) > MAX_OFFSET)
+        bad |= self.F[frames, 1] - toes[rows, 1] > LIFT_OFF
+        return np.minimum.reduceat(np.where(bad, frames, stop + 1), np.cumsum(counts) - counts) - 1
 
 
-def _targets(A, F, v, la: _Lock, lf: _Lock) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Desired ankle and toe of one frame from the locks (module docstring), with the locks' weights."""
-    wa, wf = la.weight, lf.weight
-    toe = F + wf * (lf.anchor - F)
-    ankle = A + wa * (la.anchor - A) + (1.0 - wa) * (toe - F)
-    on_sphere = toe + np.linalg.norm(v) * _unit(ankle - toe)  # the ankle a foot length from the toe
-    return ankle + wf * (on_sphere - ankle), toe, wa, wf
+@dataclass
+class _Move:
+    """A move of one foot on frames first..first+frames-1 (cut at the clip's end): from ``ankle`` and ``toe`` (where
+    it was the frame before; None: from the original motion) onto ``target`` (anchors; None: the original)."""
+
+    first: int
+    frames: int
+    ankle: np.ndarray | None
+    toe: np.ndarray | None
+    target: tuple[np.ndarray, np.ndarray] | None
+    distance: float  # m: sets the lift
+    velocity: np.ndarray  # the ankle's at push-off (a rising heel), m/frame; relative to the original's onto it
+
+
+def _landing(leg: _Leg, end: int, stop: int, anchor: tuple[np.ndarray, np.ndarray]):
+    """The step from a plant on ``anchor`` held to frame ``end``: (landing frame, new anchors, distance) whose next
+    plant holds longest within the stance run ending at ``stop`` (the shortest such step), or None."""
+    steps = []
+    for lead in range(LEAD_FRAMES + 1):
+        frames = SWING_FRAMES[0]
+        for _ in range(2):  # the step's length sets its duration, which moves the landing
+            new = leg.anchor(min(end + frames + 1 + lead, stop))
+            frames = swing_frames(float(_flat(new[1] - anchor[1])))
+        if end + frames + 1 <= stop:
+            new = leg.anchor(min(end + frames + 1 + lead, stop))
+            steps.append((end + frames + 1, new, float(_flat(new[1] - anchor[1]))))
+    if not steps:
+        return None
+    lands = np.array([s[0] for s in steps])
+    held = leg.plant_ends(lands, stop, np.array([s[1][0] for s in steps]), np.array([s[1][1] for s in steps])) - lands
+    return steps[int(np.argmax(held))] if held.max() >= 0 else None
+
+
+def _step(leg: _Leg, first: int, last: int, stop: int, anchor, busy: np.ndarray):
+    """How a plant from ``first`` that cannot hold past ``last`` (< ``stop``, its run's end) steps on: (last frame
+    held, landing frame, new anchors, distance), or None. Of the ends it may take, the one whose step overlaps the
+    other foot's steps (``busy``) least, the latest of those."""
+    step = _landing(leg, last, stop, anchor)
+    if step is None or not busy.any():
+        return None if step is None else (last, *step)
+    frames = step[0] - last - 1
+    overlap = [int(busy[end + 1: end + frames + 1].sum()) for end in range(last, first - 1, -1)]
+    end = last - int(np.argmin(overlap))
+    early = _landing(leg, end, stop, anchor) if end != last else None
+    return (end, *early) if early is not None else (last, *step)
+
+
+def _plan(leg: _Leg, stance: np.ndarray, busy: np.ndarray) -> tuple[list, list[_Move]]:
+    """One foot's plants (first, last, ankle anchor, toe anchor) and steps over its stance frames (module
+    docstring); ``busy``: frames where the other foot is in the air."""
+    T = len(stance)
+    plants: list = []
+    moves: list[_Move] = []
+    starts = np.flatnonzero(np.diff(np.r_[0, stance.astype(np.int8)]) == 1)
+    run_end = np.zeros(T, dtype=int)
+    for s in starts:
+        e = s + int(np.argmin(stance[s:])) - 1 if not stance[s:].all() else T - 1
+        run_end[s: e + 1] = e
+
+    def next_stance(t: int) -> int | None:
+        later = np.flatnonzero(stance[t:]) if t < T else []
+        return t + int(later[0]) if len(later) else None
+
+    def enter(t: int | None):
+        """A run's first plant from the original motion at t: where the toe rests within ENTRY_FRAMES (the least
+        height above the lowest there plus speed, in metres, plus ENTRY_WAIT a frame); the foot eases onto it."""
+        if t is None:
+            return None, None, None
+        frames = np.arange(t, min(t + ENTRY_FRAMES, run_end[t]) + 1)
+        speed = np.linalg.norm(leg.F[np.minimum(frames + 1, T - 1)] - leg.F[frames], axis=-1)
+        score = leg.F[frames, 1] - leg.F[frames, 1].min() + speed + ENTRY_WAIT * (frames - t)
+        rest = int(frames[np.argmin(score)])
+        anchor = leg.anchor(rest)
+        return rest, anchor, _Move(t, rest - t, None, None, anchor, 0.0, np.zeros(3)) if rest > t else None
+
+    t, anchor, entry = enter(next_stance(0))
+    while t is not None:
+        stop = run_end[t]
+        last = int(leg.plant_ends(np.array([t]), stop, anchor[0][None], anchor[1][None])[0])
+        if last < t:  # the leg cannot hold the foot here
+            t, anchor, entry = enter(next_stance(t + 1))
+            continue
+        moves += [entry] if entry else []
+        step = _step(leg, t, last, stop, anchor, busy) if last < stop else None
+        end = step[0] if step else last
+        plants.append((t, end, *anchor))
+        heel = leg.heel(np.arange(max(end - 1, t), end + 1), *anchor)[0]
+        start = heel[-1], anchor[1], heel[-1] - heel[0]
+        if step:
+            moves.append(_Move(end + 1, step[1] - end - 1, *start[:2], step[2], step[3], start[2]))
+            t, anchor, entry = step[1], step[2], None
+        elif end + 1 < T:  # the run is over: ease the foot's offset from the original out, with a step's lift
+            distance = float(_flat(anchor[1] - leg.F[end]))
+            offset = max(np.linalg.norm(start[0] - leg.A[end]), np.linalg.norm(anchor[1] - leg.F[end]))
+            frames = int(np.clip(np.ceil(1.875 * offset / CATCH_UP), 2, SWING_FRAMES[1]))  # 1.875: the quintic's peak
+            own = leg.A[end] - leg.A[max(end - 1, t)]  # the original's own speed goes on in the move
+            moves.append(_Move(end + 1, frames, *start[:2], None, distance, start[2] - own))
+            t, anchor, entry = enter(next_stance(end + frames + 1))
+        else:
+            t = None
+    return plants, moves
 
 
 def _place(H, A, A_des, reach) -> np.ndarray:
-    """The ankle: ``A_des``, or where the segment from it to the original ankle ``A`` enters the leg's reach."""
+    """Ankles (N,3): ``A_des``, or where the segment from it to the original ankle ``A`` enters the leg's reach."""
     d, e = A_des - H, A - A_des
-    if d @ d <= reach * reach:
-        return A_des
-    a, b, c = e @ e, 2.0 * (d @ e), d @ d - reach * reach  # |d + s e| = reach, the smallest s in [0, 1]
-    s = (-b - np.sqrt(max(b * b - 4.0 * a * c, 0.0))) / (2.0 * a) if a > 1e-18 else 1.0
-    return A_des + min(max(s, 0.0), 1.0) * e
+    dd = np.einsum("ij,ij->i", d, d)
+    a, b, c = np.einsum("ij,ij->i", e, e), 2.0 * np.einsum("ij,ij->i", d, e), dd - reach * reach
+    s = (-b - np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))) / (2.0 * np.maximum(a, 1e-18))
+    s = np.where(a > 1e-18, np.clip(s, 0.0, 1.0), 1.0)
+    return np.where((dd <= reach * reach)[:, None], A_des, A_des + s[:, None] * e)
 
 
-def _toe(A_new, toe, v, wf) -> np.ndarray:
-    n = np.linalg.norm(v)
-    return A_new + n * _unit((1.0 - wf) * v / max(n, 1e-12) + wf * _unit(toe - A_new))
-
-
-def _not_below(A, toe, lowest: float) -> np.ndarray:
-    """``toe`` turned about the ankle ``A`` (the foot keeps its length) so it is not below ``lowest``."""
-    if toe[1] >= lowest:
-        return toe
+def _not_below(A, toe, lowest) -> np.ndarray:
+    """Toes (N,3) turned about the ankles ``A`` (the foot keeps its length) so that none is below ``lowest``."""
     d = toe - A
-    n = np.linalg.norm(d)
-    dy = min(max(lowest - A[1], -n), n)
-    h = d[[0, 2]]
-    h = h / max(np.linalg.norm(h), 1e-12) * np.sqrt(max(n * n - dy * dy, 0.0))
-    return A + np.array([h[0], dy, h[1]])
+    n = np.linalg.norm(d, axis=-1)
+    dy = np.clip(lowest - A[:, 1], -n, n)
+    h = _unit(d[:, [0, 2]]) * np.sqrt(np.maximum(n * n - dy * dy, 0.0))[:, None]
+    turned = A + np.stack([h[:, 0], dy, h[:, 1]], axis=-1)
+    return np.where((toe[:, 1] >= lowest)[:, None], toe, turned)
 
 
-def _scan_side(j: np.ndarray, side: tuple[int, int, int, int], contacts: np.ndarray, floor: float | None):
-    """Ankle and toe positions (T,3) of one leg, lock weights (T,) and the two locks (with their held spans)."""
-    hip, knee, ankle, foot = side
-    H, A, F = (j[:, k].astype(np.float64) for k in (hip, ankle, foot))
-    thigh = np.linalg.norm(H - j[:, knee], axis=-1)
-    reach = np.maximum(REACH * (thigh + np.linalg.norm(A - j[:, knee], axis=-1)), np.linalg.norm(A - H, axis=-1))
-    locks = (_Lock(), _Lock())
-    A_out, F_out, weight = A.copy(), F.copy(), np.zeros(len(j))
-
-    def place(t: int):
-        A_des, toe, wa, wf = _targets(A[t], F[t], F[t] - A[t], *locks)
-        a_new = _place(H[t], A[t], A_des, reach[t]).copy()
-        if floor is not None:  # never lower than the floor, or than the original where it already was below
-            a_new[1] = max(a_new[1], min(floor, A[t, 1]))
-        f_new = _toe(a_new, toe, F[t] - A[t], wf)
-        if floor is not None:
-            f_new = _not_below(a_new, f_new, min(floor, F[t, 1]))
-        return A_des, a_new, f_new, max(wa, wf)
-
-    for t in range(len(j)):
-        for lock, c, X in zip(locks, contacts[t], (A, F)):
-            lock.step(t, bool(c), X[t])
-        A_des, a_new, f_new, w = place(t)
-        starting = [not lk.held and bool(c) and lk.cooldown == 0 for lk, c in zip(locks, contacts[t])]
-        if any(starting):  # anchor where the fixed motion is now, so nothing jumps
-            for lock, go, pos in zip(locks, starting, (a_new, f_new)):
-                if go:
-                    lock.start(t, pos, floor)
-            A_des, a_new, f_new, w = place(t)
-        held = [lk for lk in locks if lk.held]
-        offset = max([np.linalg.norm((lk.anchor - X[t])[[0, 2]]) for lk, X in zip(locks, (A, F)) if lk.held] or [0])
-        if held and (np.linalg.norm(A_des - H[t]) > reach[t] or offset > MAX_OFFSET):
-            n = catch_up_frames(offset)  # out of the leg's reach, or too far from the motion: let go, blend back
-            for lock in locks:
-                lock.release(t, n, cooldown=n)
-            A_des, a_new, f_new, w = place(t)
-        A_out[t], F_out[t], weight[t] = a_new, f_new, w
-    for lock in locks:
-        if lock.held:
-            lock.spans[-1] = (lock.spans[-1][0], len(j) - 1)
-    return A_out, F_out, weight, locks
+def _render(leg: _Leg, plants: list, moves: list[_Move]):
+    """Ankle and toe positions (T,3) of one leg from its plan, the frames it changes (T,), and which frames hold
+    the ankle and the toe on their anchors (T,2)."""
+    T = len(leg.A)
+    A_out, F_out = leg.A.copy(), leg.F.copy()
+    moved, held = np.zeros(T, dtype=bool), np.zeros((T, 2), dtype=bool)
+    for first, last, ankle, toe in plants:
+        frames = np.arange(first, last + 1)
+        A_out[frames], _, theta = leg.heel(frames, ankle, toe)
+        F_out[frames] = toe
+        moved[frames], held[frames, 0], held[frames, 1] = True, theta == 0.0, True
+    for m in moves:
+        frames = np.arange(m.first, min(m.first + m.frames, T))
+        x = (frames - m.first + 1) / (m.frames + 1)
+        s = (x ** 3 * (10.0 - 15.0 * x + 6.0 * x * x))[:, None]  # minimum jerk: rest to rest
+        bump = (64.0 * (x * (1.0 - x)) ** 3 * m.distance)[:, None] * _UP  # d at mid-swing, at rest at both ends
+        if m.target is None:  # back onto the original: its offset there eases out
+            (QA, QF), first = (leg.A[frames], leg.F[frames]), m.first - 1
+            PA, PF = m.ankle + QA - leg.A[first], m.toe + QF - leg.F[first]
+        else:  # onto anchors: from still ones, or from the original
+            (QA, QF), (PA, PF) = m.target, (m.ankle, m.toe) if m.toe is not None else (leg.A[frames], leg.F[frames])
+        F_des = PF + s * (QF - PF) + TOE_LIFT * bump
+        carry = (m.frames + 1) * x * (1.0 - x) ** 3 * (1.0 + 3.0 * x)  # the ankle's push-off speed, eased out
+        A_des = PA + s * (QA - PA) + carry[:, None] * m.velocity + TOE_LIFT * bump
+        A_new = _place(leg.H[frames], leg.A[frames], A_des, leg.reach[frames])
+        A_out[frames], F_out[frames] = A_new, A_new + leg.foot[frames, None] * _unit(F_des - A_new)
+        moved[frames] = True
+    if leg.floor is not None:  # never lower than the floor, or than the original where it already was below
+        A_out[:, 1] = np.maximum(A_out[:, 1], np.minimum(leg.floor, leg.A[:, 1]))
+        F_out = _not_below(A_out, F_out, np.minimum(leg.floor, leg.F[:, 1]))
+    return A_out, F_out, moved, held
 
 
 def _knees(j: np.ndarray, side: tuple[int, int, int, int], A_new: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -240,26 +364,38 @@ def _knees(j: np.ndarray, side: tuple[int, int, int, int], A_new: np.ndarray, we
     return H + a[:, None] * u + h[:, None] * _unit(pole)
 
 
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) of each run of True in ``mask``."""
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
+    return [(int(a), int(b) - 1) for a, b in zip(edges[::2], edges[1::2])]
+
+
 def _solve(joints: np.ndarray, contacts: np.ndarray, floor: float | None):
+    """Fixed joints and, per planted joint (7, 10, 8, 11), the spans it holds on an anchor; the right foot is
+    planned after the left, timing its steps around the left's."""
     j = _check(joints)
     c = np.asarray(contacts)
     c = c if c.dtype == bool else c > 0.5
     if c.shape != (len(j), 4):
         raise ValueError(f"contacts must be (T, 4) for {len(j)} frames, got shape {c.shape}")
-    c = ground_contacts(j, c)
-    out, spans = j.copy(), []
+    stance = stance_frames(j, c)
+    out, spans, busy = j.copy(), [], np.zeros(len(j), dtype=bool)
+    heel_up = ~ground_contacts(j, c)[:, [0, 2]]
     for s, side in enumerate(SIDES):
-        A_new, F_new, weight, locks = _scan_side(j, side, c[:, 2 * s: 2 * s + 2], floor)
-        K_new = _knees(j, side, A_new, weight)
-        moved = weight > 0
+        leg = _Leg(j, side, heel_up[:, s], floor)
+        plants, moves = _plan(leg, stance[:, s], busy)
+        A_new, F_new, moved, held = _render(leg, plants, moves)
+        for m in moves:
+            busy[m.first: m.first + m.frames] = True
+        K_new = _knees(j, side, A_new, moved.astype(np.float64))
         for k, new in zip(side[1:], (K_new, A_new, F_new)):
             out[moved, k] = new[moved]
-        spans += [lk.spans for lk in locks]
+        spans += [_runs(held[:, 0]), _runs(held[:, 1])]
     return out, spans
 
 
 def fix_feet(joints: np.ndarray, contacts: np.ndarray, *, floor: float | None = 0.0) -> np.ndarray:
-    """Joints (T,22,3) with each foot held on its anchor while in contact (module docstring), same dtype.
+    """Joints (T,22,3) with each foot planted while in contact and stepping on (module docstring), same dtype.
 
     ``contacts`` (T,4) per frame, bool or in [0, 1] (over 0.5 is contact), for joints 7, 10, 8, 11.
     ``floor``: anchors below this height are lifted onto it (None: left where they are). Raises ValueError.

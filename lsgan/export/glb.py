@@ -8,7 +8,9 @@ primitives, an icosphere at every joint and a capsule along every bone (leaves g
 of their own bone), each vertex bound to one joint, so Blender and engines import an armature. One animation at
 the motion's fps has a LINEAR rotation channel per joint (the IK of :func:`lsgan.export.bvh.joint_rotations`,
 as unit x,y,z,w quaternions) and a translation channel for the pelvis. glTF's conventions (right-handed, +Y
-up, +Z forward, metres) are lsgan's, so nothing is converted.
+up, +Z forward, metres) are lsgan's, so nothing is converted. :func:`skeleton_document` builds this file for
+any hierarchy: a user's rig (:func:`lsgan.export.retarget.rig_gltf_document`) gets the same nodes, skin, mesh and
+animation, at its own rest pose.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from lsgan.export.bvh import CHILDREN, joint_rotations, rest_offsets
+from lsgan.export.bvh import joint_rotations, rest_offsets
 from lsgan.io import atomic_file
 
 GLB_MAGIC = 0x46546C67  # b"glTF" little endian
@@ -37,13 +39,29 @@ COMPONENT = {np.dtype(np.float32): FLOAT, np.dtype(np.uint8): UINT8, np.dtype(np
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-def _bone_parts(k: int, offsets: np.ndarray) -> list:
-    """trimesh primitives of joint ``k`` in its own frame: an icosphere at the joint and a capsule towards
-    each child (or a stub along its own bone for a leaf)."""
+def bone_targets(parents, offsets: np.ndarray, end_sites=(), moving=()) -> list[list[np.ndarray]]:
+    """Per joint, the vectors (in its own frame) its bone capsules run along: to each child (not to one in
+    ``moving``, whose animated translation would stretch the bone), else to its End Sites ``(joint, offset)``,
+    else a stub of ``STUB_FRACTION`` of its own bone."""
+    parents = np.asarray(parents)
+    tips = {k: [np.asarray(o, dtype=np.float64) for j, o in end_sites if j == k] for k in range(len(parents))}
+    out = []
+    for k in range(len(parents)):
+        children = np.flatnonzero(parents == k)
+        if len(children):
+            out.append([offsets[c] for c in children if c not in moving])
+        else:
+            out.append([o for o in tips[k] if np.linalg.norm(o) > 1e-6] or [offsets[k] * STUB_FRACTION])
+    return out
+
+
+def _bone_parts(targets: list[np.ndarray]) -> list:
+    """trimesh primitives of one joint in its own frame: an icosphere at the joint and a capsule along each
+    target vector (see :func:`bone_targets`)."""
     import trimesh
 
     parts = [trimesh.creation.icosphere(subdivisions=1, radius=JOINT_RADIUS)]
-    for target in [offsets[c] for c in CHILDREN[k]] or [offsets[k] * STUB_FRACTION]:
+    for target in targets:
         length = float(np.linalg.norm(target))
         if length < 1e-6:
             continue
@@ -55,24 +73,25 @@ def _bone_parts(k: int, offsets: np.ndarray) -> list:
     return parts
 
 
-def _rest_world(offsets: np.ndarray, pelvis: np.ndarray, quat: np.ndarray) -> np.ndarray:
-    """(22,4,4) world matrices of the joint nodes in the bind pose: their rest translations and rotations."""
-    world = np.zeros((NUM_JOINTS, 4, 4))
-    for k in range(NUM_JOINTS):  # parents come first in PARENTS
+def _rest_world(parents, rest: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """(J,4,4) world matrices of the joint nodes in the bind pose: rest translations (a root's is its position)
+    and rotations ``quat`` (J,4), parents listed first."""
+    world = np.zeros((len(parents), 4, 4))
+    for k, parent in enumerate(parents):
         local = np.eye(4)
         local[:3, :3] = Rotation.from_quat(quat[k]).as_matrix()
-        local[:3, 3] = pelvis if PARENTS[k] < 0 else offsets[k]
-        world[k] = local if PARENTS[k] < 0 else world[PARENTS[k]] @ local
+        local[:3, 3] = rest[k]
+        world[k] = local if parent < 0 else world[parent] @ local
     return world
 
 
-def skeleton_mesh(offsets: np.ndarray, world: np.ndarray) -> dict[str, np.ndarray]:
-    """The skinned skeleton mesh in the bind pose: positions (V,3), normals (V,3), faces (F,3), joint (V,) of
-    each vertex (its only influence)."""
+def skeleton_mesh(targets: list[list[np.ndarray]], world: np.ndarray) -> dict[str, np.ndarray]:
+    """The skinned skeleton mesh in the bind pose ``world`` (J,4,4): positions (V,3), normals (V,3), faces
+    (F,3), joint (V,) of each vertex (its only influence)."""
     positions, normals, faces, joint = [], [], [], []
     count = 0
-    for k in range(NUM_JOINTS):
-        for part in _bone_parts(k, offsets):
+    for k, joint_targets in enumerate(targets):
+        for part in _bone_parts(joint_targets):
             positions.append(part.vertices @ world[k, :3, :3].T + world[k, :3, 3])
             normals.append(part.vertex_normals @ world[k, :3, :3].T)
             faces.append(part.faces + count)
@@ -89,6 +108,12 @@ def _hemisphere_continuous(quat: np.ndarray) -> np.ndarray:
         flip = np.einsum("ki,ki->k", q[t], q[t - 1]) < 0
         q[t, flip] *= -1
     return q
+
+
+def unit_quats(quat: np.ndarray) -> np.ndarray:
+    """Quaternions (T,K,4) as written: hemisphere-continuous, float32, renormalised."""
+    q = _hemisphere_continuous(quat).astype(np.float32)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 class _Builder:
@@ -135,49 +160,62 @@ def _validate(joints: np.ndarray, fps: float) -> np.ndarray:
 def gltf_document(joints: np.ndarray, *, fps: float = 20.0, name: str = "motion") -> tuple[dict, bytes]:
     """The glTF JSON (dict) and its binary buffer for joint positions (T,22,3) in metres."""
     j = _validate(joints, fps)
-    frames = j.shape[0]
     offsets = rest_offsets(j)
     rot = joint_rotations(j, offsets)
-    quat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(frames, NUM_JOINTS, 4)
-    quat = _hemisphere_continuous(quat).astype(np.float32)
-    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
-    builder = _Builder()
+    quat = unit_quats(Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(len(j), NUM_JOINTS, 4))
+    rest = offsets.copy()
+    rest[0] = j[0, 0]  # the bind pose is the first frame's
+    extras = {"fps": float(fps), "frames": len(j), "units": "metres", "up": "+Y", "forward": "+Z"}
+    return skeleton_document(JOINT_NAMES, PARENTS, rest, quat, {0: j[:, 0]}, bone_targets(PARENTS, offsets),
+                             rest_quat=quat[0], fps=fps, name=name, extras=extras)
 
+
+def skeleton_document(names, parents, rest: np.ndarray, quat: np.ndarray, moving: dict[int, np.ndarray],
+                      targets: list[list[np.ndarray]], *, rest_quat: np.ndarray, fps: float, name: str,
+                      extras: dict) -> tuple[dict, bytes]:
+    """glTF JSON and buffer of an animated hierarchy (``parents`` listed first): a ROOT_NAME node holding one
+    node per joint, at rest translations ``rest`` (J,3, metres; a root's is its position) and rotations
+    ``rest_quat`` (J,4), the bind pose of a skinned mesh of ``targets``' bones; one LINEAR animation at ``fps``
+    turns every joint by ``quat`` (T,J,4) and moves the joints ``moving`` names to their (T,3) translations."""
+    frames, count = quat.shape[:2]
+    builder = _Builder()
     material = {"name": "lsgan_skeleton", "doubleSided": False,
                 "pbrMetallicRoughness": {"baseColorFactor": [0.85, 0.55, 0.2, 1.0],
                                          "metallicFactor": 0.0, "roughnessFactor": 0.7}}
-    nodes = [{"name": ROOT_NAME, "children": [1]}]
-    for k in range(NUM_JOINTS):
-        translation = j[0, 0] if PARENTS[k] < 0 else offsets[k]
-        node = {"name": JOINT_NAMES[k], "translation": [float(x) for x in translation.astype(np.float32)],
-                "rotation": [float(x) for x in quat[0, k]]}
-        if CHILDREN[k]:
-            node["children"] = [c + 1 for c in CHILDREN[k]]
+    rest32 = np.asarray(rest).astype(np.float32)
+    nodes = [{"name": ROOT_NAME, "children": [k + 1 for k in range(count) if parents[k] < 0]}]
+    for k in range(count):
+        node = {"name": names[k], "translation": [float(x) for x in rest32[k]],
+                "rotation": [float(x) for x in rest_quat[k]]}
+        children = [c + 1 for c in range(count) if parents[c] == k]
+        if children:
+            node["children"] = children
         nodes.append(node)
-    world = _rest_world(offsets.astype(np.float32).astype(np.float64), j[0, 0].astype(np.float32), quat[0])
-    mesh, skin = _skin(builder, offsets, world)
+    world = _rest_world(parents, rest32.astype(np.float64), rest_quat)
+    roots = nodes[0]["children"]
+    mesh, skin = _skin(builder, targets, world, skeleton=roots[0] if len(roots) == 1 else 0)
     nodes.append({"name": "lsgan_skeleton", "mesh": 0, "skin": 0})  # a scene root: glTF ignores its parents
 
     times = (np.arange(frames, dtype=np.float64) / fps).astype(np.float32)
     time_acc = builder.add(times, "SCALAR", bounds=True)
     samplers, channels = [], []
-    for k in range(NUM_JOINTS):
+    for k in range(count):
         samplers.append({"input": time_acc, "output": builder.add(quat[:, k], "VEC4"), "interpolation": "LINEAR"})
         channels.append({"sampler": k, "target": {"node": k + 1, "path": "rotation"}})
-    pelvis = j[:, 0].astype(np.float32)
-    samplers.append({"input": time_acc, "output": builder.add(pelvis, "VEC3"), "interpolation": "LINEAR"})
-    channels.append({"sampler": NUM_JOINTS, "target": {"node": 1, "path": "translation"}})
-
-    extras = {"fps": float(fps), "frames": frames, "units": "metres", "up": "+Y", "forward": "+Z"}
-    return _finish(builder, name=name, scene_nodes=[0, NUM_JOINTS + 1], nodes=nodes, meshes=[mesh],
+    for k, track in sorted(moving.items()):
+        samplers.append({"input": time_acc, "output": builder.add(np.asarray(track).astype(np.float32), "VEC3"),
+                         "interpolation": "LINEAR"})
+        channels.append({"sampler": len(samplers) - 1, "target": {"node": k + 1, "path": "translation"}})
+    return _finish(builder, name=name, scene_nodes=[0, count + 1], nodes=nodes, meshes=[mesh],
                    materials=[material], animation={"name": name, "samplers": samplers, "channels": channels},
                    extras=extras, skins=[skin])
 
 
-def _skin(builder: _Builder, offsets: np.ndarray, world: np.ndarray) -> tuple[dict, dict]:
-    """The skeleton mesh (one primitive, every vertex bound to one joint) and its skin over nodes 1..22."""
-    m = skeleton_mesh(offsets, world)
-    joints = np.zeros((len(m["joint"]), 4), np.uint8)
+def _skin(builder: _Builder, targets: list[list[np.ndarray]], world: np.ndarray, *, skeleton: int
+          ) -> tuple[dict, dict]:
+    """The skeleton mesh (one primitive, every vertex bound to one joint) and its skin over nodes 1..J."""
+    m = skeleton_mesh(targets, world)
+    joints = np.zeros((len(m["joint"]), 4), np.uint8 if len(world) < 256 else np.uint16)
     joints[:, 0] = m["joint"]
     weights = np.zeros((len(m["joint"]), 4), np.float32)
     weights[:, 0] = 1.0
@@ -193,7 +231,7 @@ def _skin(builder: _Builder, offsets: np.ndarray, world: np.ndarray) -> tuple[di
     mesh = {"name": "lsgan_skeleton", "primitives": [{"attributes": attributes, "indices": indices, "material": 0,
                                                       "mode": 4}]}
     inverse_bind = np.linalg.inv(world).astype(np.float32).transpose(0, 2, 1)  # glTF stores column-major
-    skin = {"name": "lsgan_skeleton", "skeleton": 1, "joints": list(range(1, NUM_JOINTS + 1)),
+    skin = {"name": "lsgan_skeleton", "skeleton": skeleton, "joints": list(range(1, len(world) + 1)),
             "inverseBindMatrices": builder.add(inverse_bind.reshape(-1, 16), "MAT4")}
     return mesh, skin
 
@@ -286,9 +324,7 @@ def body_gltf_document(fit, model, *, name: str = "motion") -> tuple[dict, bytes
     frames, fps = poses.shape[0], float(fit.fps)
     rest = model.rest_joints(fit.betas).astype(np.float64)
     vertices = model.rest_vertices(fit.betas).astype(np.float64)
-    quat = Rotation.from_rotvec(poses.reshape(-1, 3)).as_quat().reshape(frames, model.num_joints, 4)
-    quat = _hemisphere_continuous(quat).astype(np.float32)
-    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    quat = unit_quats(Rotation.from_rotvec(poses.reshape(-1, 3)).as_quat().reshape(frames, model.num_joints, 4))
     builder = _Builder()
 
     joint_ids, weights = _top4_weights(model.weights)

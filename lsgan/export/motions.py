@@ -53,7 +53,7 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
     EncodeError with a message naming the file and the problem. An existing output is refused unless
     ``force``, which replaces only files lsgan wrote (see :mod:`lsgan.outputs`).
 
-    With ``rig`` (a BVH file; BVH only) each motion is retargeted onto that skeleton through the joint map
+    With ``rig`` (a BVH file; BVH or GLB) each motion is retargeted onto that skeleton through the joint map
     ``joint_map`` (a JSON file) or ``preset`` (:mod:`lsgan.export.retarget`).
 
     ``fix_feet`` holds the feet still while in contact (:mod:`lsgan.export.feet`), with the contacts of each
@@ -70,6 +70,9 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if body_model is not None and fmt != "glb":
         raise ValueError("a body model is only used by the GLB export (--glb --body-model DIR)")
+    if body_model is not None and rig is not None:
+        raise ValueError("a body model and a rig do not go together: --body-model fits SMPL's body, --rig retargets "
+                         "onto your skeleton (use one)")
     model = read_body_model(body_model, model_type=model_type, gender=gender) if body_model is not None else None
     rigged = _load_rig(rig, joint_map, preset, fmt) if rig is not None else None
     source, out = Path(source), Path(output)
@@ -98,9 +101,9 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
             (write_gif if fmt == "gif" else write_mp4)(path, joints, fps=fps, title=label)
             results.append(Exported(path, len(joints)))
         elif rigged is not None:
-            from lsgan.export.retarget import write_rig_bvh
+            from lsgan.export.retarget import write_rig_bvh, write_rig_glb
 
-            write_rig_bvh(path, joints, *rigged, fps=fps)
+            (write_rig_glb if fmt == "glb" else write_rig_bvh)(path, joints, *rigged, fps=fps)
             results.append(Exported(path, len(joints), unit_m=rigged[1].scale))
         else:
             (write_glb if fmt == "glb" else write_bvh)(path, joints, fps=fps)
@@ -113,8 +116,8 @@ def _load_rig(rig: str | Path, joint_map: str | Path | None, preset: str | None,
     from lsgan.data.joint_maps import get_joint_map
     from lsgan.export.retarget import load_rig, plan_rig
 
-    if fmt != "bvh":
-        raise ValueError(f"a rig is only used by the BVH export (--bvh --rig), not --{fmt}")
+    if fmt not in ("bvh", "glb"):
+        raise ValueError(f"a rig is only used by the BVH and GLB exports (--bvh/--glb --rig), not --{fmt}")
     if (joint_map is None) == (preset is None):
         raise ValueError("a rig needs a joint map: --joint-map MAP.json or --preset NAME (one of them)")
     skeleton = load_rig(rig)

@@ -1,4 +1,4 @@
-"""Retarget (T,22,3) motions onto a user's BVH skeleton: ``lsgan export --bvh MOTION --rig CHARACTER.bvh``.
+"""Retarget (T,22,3) motions onto a user's BVH skeleton: ``lsgan export --bvh|--glb MOTION --rig CHARACTER.bvh``.
 
 The rig is any BVH file (:func:`lsgan.data.bvh.read_bvh`); its hierarchy, rest pose (OFFSET lines with zero
 rotations), channel orders, End Sites and units are kept and its motion is ignored. A joint map
@@ -16,6 +16,10 @@ rig joints named directly are *mapped* (``between`` entries only place SMPL join
   Unmapped joints inside a chain share the bend: the k-th of n turns 1/(n-k) of the remaining arc, so the
   last one aims exactly.
 - Everything else (fingers, end bones, mapped leaves such as the head or the hands) keeps its rest rotation.
+
+The BVH gets these rotations as Euler angles in each joint's channel order; the GLB (:func:`rig_gltf_document`)
+gets the same rotations as quaternions on the rig's hierarchy in metres, Y up (the map's scale, up axis and
+handedness undone), skinned to a mesh of its bones (:func:`lsgan.export.glb.skeleton_document`).
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices
 from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.export.body import _continue_twist as continue_twist
 from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text, kabsch, shortest_arc
+from lsgan.export.glb import bone_targets, pack_glb, skeleton_document, unit_quats
 from lsgan.io import atomic_file
 
 _LEGS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"))
@@ -155,10 +160,8 @@ def solve(q: np.ndarray, root: np.ndarray, rig: Bvh, plan: Plan) -> tuple[np.nda
     return local, trans
 
 
-def retarget(joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0) -> Bvh:
-    """Our motion (T,22,3: metres, Y up) on ``rig``'s skeleton: a :class:`Bvh` with the rig's hierarchy and a
-    new MOTION block at ``fps``. Raises ValueError for a bad motion, ClipError for a map that does not fit."""
-    j = checked_motion(joints, fps)
+def _solved(j: np.ndarray, rig: Bvh, jmap: JointMap) -> tuple[Plan, np.ndarray, np.ndarray]:
+    """The plan and :func:`solve`'s local rotations and translations (rig frame) for a checked motion ``j``."""
     plan = plan_rig(rig, jmap)
     rest = apply_joint_map(rest_positions(rig.parents, rig.offsets)[None], rig.names, jmap, rig.path)
     ours = leg_length(j)
@@ -166,9 +169,39 @@ def retarget(joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0)
         raise ValueError("the motion's legs have zero length")
     scale = leg_length(rest) / ours
     local, trans = solve(rig_frame(j, jmap), rig_frame(j[:, 0] * scale, jmap), rig, plan)
+    return plan, local, trans
+
+
+def retarget(joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0) -> Bvh:
+    """Our motion (T,22,3: metres, Y up) on ``rig``'s skeleton: a :class:`Bvh` with the rig's hierarchy and a
+    new MOTION block at ``fps``. Raises ValueError for a bad motion, ClipError for a map that does not fit."""
+    _, local, trans = _solved(checked_motion(joints, fps), rig, jmap)
     motion = channel_values(local, trans, rig.channels)
     return Bvh(path=rig.path, names=rig.names, parents=rig.parents, offsets=rig.offsets, channels=rig.channels,
                frame_time=1.0 / fps, motion=motion, end_sites=rig.end_sites)
+
+
+def rig_gltf_document(joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0,
+                      name: str = "motion") -> tuple[dict, bytes]:
+    """glTF JSON and buffer of our motion on ``rig``: its hierarchy as nodes at its rest pose (metres, Y up,
+    right-handed, through the map's scale, up axis and handedness), skinned, and animated with the rotations
+    and root translation that :func:`retarget` writes to the BVH."""
+    plan, local, trans = _solved(checked_motion(joints, fps), rig, jmap)
+    axes = rig_frame(np.eye(3), jmap) * jmap.scale  # C, with ours = scale * C @ rig (rig_frame is C.T / scale)
+
+    def metres(v) -> np.ndarray:
+        return np.asarray(v, dtype=np.float64) @ axes.T * jmap.scale
+
+    rot = np.einsum("ij,tkjl,ml->tkim", axes, local, axes)  # the same turns seen in our frame
+    quat = unit_quats(Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(*rot.shape[:2], 4))
+    rest, root = metres(rig.offsets), metres(trans[:, plan.carrier])
+    ends = [(k, metres(o)) for k, o in rig.end_sites]
+    extras = {"fps": float(fps), "frames": len(local), "units": "metres", "up": "+Y", "forward": "+Z",
+              "rig": Path(rig.path).name, "joint_map": jmap.name}
+    identity = np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (len(rig.names), 1))
+    return skeleton_document(rig.names, rig.parents, rest, quat, {plan.carrier: root},
+                             bone_targets(rig.parents, rest, ends, moving={plan.carrier}), rest_quat=identity,
+                             fps=fps, name=name, extras=extras)
 
 
 def rig_bvh_text(bvh: Bvh) -> str:
@@ -182,6 +215,15 @@ def load_rig(path: str | Path) -> Bvh:
     if not Path(path).is_file():
         raise ClipError(f"{path}: no such rig file")
     return read_bvh(path)
+
+
+def write_rig_glb(path: str | Path, joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0) -> Path:
+    """Write :func:`rig_gltf_document` of ``joints`` as a GLB file on ``rig``, atomically."""
+    path = Path(path)
+    data = pack_glb(*rig_gltf_document(joints, rig, jmap, fps=fps, name=path.stem))
+    with atomic_file(path) as fh:
+        fh.write(data)
+    return path
 
 
 def write_rig_bvh(path: str | Path, joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0) -> Path:
