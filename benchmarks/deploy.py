@@ -2,8 +2,9 @@
 
 The decoder is paper-sized (``lsgan.eval.bench.PAPER_VAE``, random weights) decoding 120 frames; the text encoder is
 the packaged MiniLM on lsgan.deploy.int8's reference prompts, tokenised beforehand (both runtimes get the same ids).
-Both are exported as ``lsgan export-model`` exports them (``lsgan.deploy.onnx_export.export_graph``) and their
-feed-forward products quantised as ``--int8`` does (lsgan.deploy.int8), with both weight types (QInt8, QUInt8).
+Both are exported as ``lsgan export-model`` exports them (``lsgan.deploy.onnx_export.export_graph``); the decoder's
+feed-forward and self-attention products are quantised as ``--int8`` does (lsgan.deploy.int8), and MiniLM's
+feed-forward products for comparison, with both weight types (QInt8, QUInt8).
 Each figure is the median of ``--repeats`` timed runs after one warm-up, in ms per motion (decoder) or per prompt
 (text), at batch 1 and 256; onnxruntime with ``--threads`` intra-op threads, spin-waiting off and on (the decoder);
 torch eager with the same number of threads. The 1-minute load average is
@@ -50,10 +51,10 @@ def export_both(folder: Path) -> tuple[MotionVAE, object]:
     export_graph(TextGraph(enc), (ids, att),
                  {"input_ids": {0: batch, 1: tokens}, "attention_mask": {0: batch, 1: tokens}}, "embedding",
                  folder / "text_encoder.onnx")
-    feed_forward = {"decoder": q.DECODER_FEED_FORWARD, "text_encoder": q.MINILM_FEED_FORWARD}
-    for graph, modules in feed_forward.items():
+    products = {"decoder": q.DECODER_INT8, "text_encoder": q.MINILM_FEED_FORWARD}
+    for graph, pattern in products.items():
         for weights in ("QInt8", "QUInt8"):
-            q.quantise(folder / f"{graph}.onnx", folder / f"{graph}.{weights}.onnx", modules=modules,
+            q.quantise(folder / f"{graph}.onnx", folder / f"{graph}.{weights}.onnx", weights=pattern,
                        weight_type=weights)
     return vae, enc
 

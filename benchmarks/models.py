@@ -9,7 +9,7 @@
    repeated runs with its quartiles, timed by ``lsgan.eval.bench.time_per_motion``, the timer ``lsgan bench``
    uses. Beside each: the physical floor, the decoder's FLOPs over this CPU's peak at the precision (the peak
    measured here with a 2048-cube matrix product in that precision on all cores; for int8, the feed-forward
-   products at the int8 rate and the rest at the fp32 rate, as ``--int8`` quantises them).
+   and self-attention products at the int8 rate and the rest at the fp32 rate, as ``--int8`` quantises them).
 3. With ``--quality-run GAN_RUN`` (a trained text GAN; its VAE from its cache or ``--quality-vae``): the joint
    deviation of each fast runtime from torch fp32 on the same noise, mean and max mm over 100 motions.
 
@@ -115,22 +115,23 @@ def _gen_step(gan: LatentGAN, opt_g, cond: torch.Tensor) -> None:
 # ---------------------------------------------------------------------------------------------------- generation
 
 RUNTIMES = ("torch fp32 eager", "torch bf16 autocast", "onnxruntime fp32", "onnxruntime int8")
-PRECISION = dict(zip(RUNTIMES, ("fp32", "bf16", "fp32", "int8")))  # int8: the feed-forward products only
+PRECISION = dict(zip(RUNTIMES, ("fp32", "bf16", "fp32", "int8")))  # int8: the products --int8 quantises
 
 
-def feed_forward_gflop(frames: int) -> float:
-    """GFLOPs per motion of the decoder's feed-forward products (d -> ff -> d in every layer): what --int8
-    quantises (lsgan.deploy.int8); the rest of the decoder stays fp32."""
-    return 2 * 2 * frames * PAPER_VAE.num_layers * PAPER_VAE.d_model * PAPER_VAE.ff_size / 1e9
+def int8_gflop(frames: int) -> float:
+    """GFLOPs per motion of the products --int8 quantises (lsgan.deploy.int8): in every layer the feed-forward
+    (d -> ff -> d) and the self-attention projections (d -> 3d, d -> d); the rest of the decoder stays fp32."""
+    d = PAPER_VAE.d_model
+    return 2 * frames * PAPER_VAE.num_layers * (2 * d * PAPER_VAE.ff_size + 4 * d * d) / 1e9
 
 
 def floor_ms(precision: str, decoder_gflop: float, frames: int, peaks: dict[str, float]) -> float:
-    """The decoder's time at the CPU's peak: all of it at ``precision``, or for int8 the feed-forward products at
+    """The decoder's time at the CPU's peak: all of it at ``precision``, or for int8 the quantised products at
     the int8 rate and the rest at the fp32 rate."""
     if precision != "int8":
         return 1000.0 * decoder_gflop / peaks[precision]
-    ff = feed_forward_gflop(frames)
-    return 1000.0 * (ff / peaks["int8"] + (decoder_gflop - ff) / peaks["fp32"])
+    i8 = int8_gflop(frames)
+    return 1000.0 * (i8 / peaks["int8"] + (decoder_gflop - i8) / peaks["fp32"])
 
 
 def save_paper_runs(folder: Path) -> tuple[Path, Path]:

@@ -19,10 +19,12 @@ import torch
 from lsgan.data.features import recover_from_ric
 # re-exported: the structures and the writer, torch-free in lsgan.generation, shared with the ONNX runtime
 from lsgan.generation import (  # noqa: F401
+    CPU_DECODE_FRAMES,
     Generation,
     Motion,
     Request,
     claim_generation,
+    decode_batches,
     read_prompts,
     write_generation,
 )
@@ -275,14 +277,14 @@ def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, se
 
 def _decode(decoder, vmeta: dict, z: torch.Tensor, frames: list[int], dev: torch.device, batch_size: int,
             threads: ThreadPolicy, timings: dict[str, float]) -> list[np.ndarray]:
-    """De-normalised features of each latent at its length, decoded in batches of similar length."""
+    """De-normalised features of each latent at its length, decoded in batches of similar length (on a CPU
+    within :data:`~lsgan.generation.CPU_DECODE_FRAMES` padded frames a pass)."""
     feats: list[np.ndarray] = [None] * len(frames)  # type: ignore[list-item]
+    budget = CPU_DECODE_FRAMES if dev.type == "cpu" else None
     with torch.no_grad():
         t0 = time.perf_counter()
-        order = sorted(range(len(frames)), key=lambda i: frames[i])
-        for b in range(0, len(order), batch_size):
+        for idx in decode_batches(frames, batch_size, budget):
             threads.update()
-            idx = order[b : b + batch_size]
             lengths = torch.tensor([frames[i] for i in idx], device=dev)
             mask = torch.arange(int(lengths.max()), device=dev)[None] < lengths[:, None]
             x = decoder.decode(z[idx], mask).float().cpu().numpy()

@@ -18,6 +18,29 @@ from lsgan.data.skeleton import FPS
 from lsgan.io import atomic_file
 
 
+CPU_DECODE_FRAMES = 4096  # padded frames per decoder pass on a CPU
+
+
+def decode_batches(frames: list[int], batch_size: int, frame_budget: int | None = None) -> list[list[int]]:
+    """Indices of the motions of each decoder pass: sorted by length (little padding), at most ``batch_size``
+    motions and, when ``frame_budget`` is given, at most that many padded frames (one motion at least).
+
+    The budget keeps a CPU pass's activations in cache: the paper-sized decoder took 17.9 ms per motion at 256
+    motions of 120 frames against 15.4 at 32, and 45 against 25 ms at 196 frames, where the attention scores of
+    256 motions alone are 157 MB.
+    """
+    order = sorted(range(len(frames)), key=lambda i: frames[i])
+    batches: list[list[int]] = []
+    for i in order:
+        longest = frames[i]  # sorted: the newest is the longest of its batch
+        if batches and len(batches[-1]) < batch_size \
+                and (frame_budget is None or (len(batches[-1]) + 1) * longest <= frame_budget):
+            batches[-1].append(i)
+        else:
+            batches.append([i])
+    return batches
+
+
 @dataclass
 class Request:
     """One condition to generate for: a prompt or an action label, and a length in frames (20 fps)."""

@@ -198,20 +198,21 @@ def test_int8_error_is_recorded_and_reproduced(runs: Path) -> None:
     assert size["decoder.int8.onnx"] < size["decoder.onnx"]  # int8 matrices (the tiny model is mostly other tensors)
 
 
-def test_int8_quantises_the_feed_forward_products_only(runs: Path) -> None:
-    """Two int8 products per decoder layer (d -> ff, ff -> d), per channel; every other product stays fp32."""
+def test_int8_quantises_the_feed_forward_and_self_attention_products_only(runs: Path) -> None:
+    """Four int8 products per decoder layer (d -> ff, ff -> d, the self-attention's in and out projections), per
+    channel; every other product stays fp32."""
     import onnx
 
     m = json.loads((runs / "gan-onnx" / "manifest.json").read_text())
     cfg = json.loads((runs / "vae" / "best" / "config.json").read_text())["config"]["model"]
     nodes = m["variants"]["int8"]["quantisation"]["quantised_nodes"]
-    assert len(nodes) == 2 * cfg["num_layers"]
+    assert len(nodes) == 4 * cfg["num_layers"]
     graph = onnx.load(str(runs / "gan-onnx" / "decoder.int8.onnx")).graph
     integer = [n for n in graph.node if n.op_type in ("MatMulInteger", "DynamicQuantizeMatMul")]
     assert len(integer) == len(nodes)
     fp32 = onnx.load(str(runs / "gan-onnx" / "decoder.onnx")).graph
     products = [n for n in fp32.node if n.op_type in ("MatMul", "Gemm")]
-    assert len(products) > len(nodes)  # attention, skip and output products were left in fp32
+    assert len(products) > len(nodes)  # cross-attention, skip and output products were left in fp32
     scales = {i.name: tuple(i.dims) for i in graph.initializer if i.name.endswith("_scale")}
     assert any(dims and dims[0] > 1 for dims in scales.values())  # per-channel weight scales
 

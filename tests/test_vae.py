@@ -111,8 +111,9 @@ def test_shapes_and_masks(config):
 
 @pytest.mark.parametrize("norm_first", [True, False])
 def test_inference_decoder_computes_the_one_token_cross_attention_once(norm_first):
-    """In eval mode decode() skips the cross-attention's per-frame products (one memory token: softmax is 1);
-    the features equal those of torch's TransformerDecoderLayer stack, padding included."""
+    """In eval mode decode() skips the cross-attention's per-frame products (one memory token: softmax is 1) and
+    runs the self-attention by the fused kernel; the features equal those of torch's TransformerDecoderLayer
+    stack to float rounding, padding included."""
     torch.manual_seed(0)
     vae = MotionVAE(VAEConfig(d_model=32, num_heads=4, ff_size=64, num_layers=5, norm_first=norm_first)).eval()
     z = torch.randn(3, 256)
@@ -320,3 +321,38 @@ def test_a_run_keeps_its_cpu_threads_across_resumes(shard, tmp_path, monkeypatch
     assert load_state(tmp_path)["threads"] == 1
     log = (tmp_path / "train.log").read_text()
     assert log.count("CPU threads for this run") == 1 and "trained on 2 CPU threads and continues on 1" in log
+
+
+@pytest.mark.parametrize("batch_size, budget", [(256, None), (5, None), (256, 100), (4, 90), (256, 10)])
+def test_decode_batches_sort_by_length_and_keep_the_frame_budget(batch_size, budget):
+    """Every motion once; lengths ascending; at most batch_size motions and budget padded frames a pass (a
+    longer motion alone); without a budget, full batches of batch_size."""
+    from lsgan.generation import decode_batches
+
+    frames = [int(f) for f in np.random.default_rng(0).integers(1, 60, 37)]
+    batches = decode_batches(frames, batch_size, budget)
+    flat = [i for b in batches for i in b]
+    assert sorted(flat) == list(range(37))
+    assert [frames[i] for i in flat] == sorted(frames)
+    for b in batches:
+        assert len(b) <= batch_size
+        assert budget is None or len(b) == 1 or len(b) * max(frames[i] for i in b) <= budget
+    if budget is None:
+        assert [len(b) for b in batches[:-1]] == [batch_size] * (len(batches) - 1)
+
+
+def test_decoding_in_frame_budget_batches_gives_the_same_features():
+    """A motion's features do not depend on the pass it was decoded in (padding masked)."""
+    from lsgan.generation import decode_batches
+
+    torch.manual_seed(0)
+    vae = MotionVAE(VAEConfig(d_model=32, num_heads=4, ff_size=64, num_layers=3)).eval()
+    frames = [40, 7, 33, 40, 12, 25]
+    z = torch.randn(len(frames), 256)
+    with torch.no_grad():
+        alone = [vae.decode(z[i:i + 1], torch.ones(1, f, dtype=torch.bool))[0] for i, f in enumerate(frames)]
+        for idx in decode_batches(frames, 256, 80):
+            lengths = torch.tensor([frames[i] for i in idx])
+            out = vae.decode(z[idx], torch.arange(int(lengths.max()))[None] < lengths[:, None])
+            for j, i in enumerate(idx):
+                torch.testing.assert_close(out[j, :frames[i]], alone[i], atol=1e-5, rtol=0)

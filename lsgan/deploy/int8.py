@@ -1,13 +1,15 @@
-"""int8 graphs: onnxruntime's dynamic quantisation of the decoder's feed-forward products, and what it costs.
+"""int8 graphs: onnxruntime's dynamic quantisation of the decoder's feed-forward and self-attention products.
 
-Which products: the feed-forward layers of every decoder block (d -> ff and ff -> d, 8 of the ~13 d x d products
-per frame and layer at ff = 4d). Their weights become int8 per output channel (symmetric ``QInt8``); their inputs
-are quantised to uint8 on the fly. Measured on the trained Bandai GAN's decoder (100 fixed motions, joint
-error against fp32): every product per tensor, 16.7 mm mean (120 max); every product per channel, 12.9 mm; the
-feed-forward products alone per channel, 1.4 mm (15 max). The final feature layer is the worst to quantise
-(7.8 mm once it alone stays fp32), then the skip projections and the attention input projections, so they stay
-fp32. u8 activations x s8 weights is the fast path of x86 CPUs with AVX-512 VNNI; on x86 CPUs without VNNI that
-pair can saturate (onnxruntime's quantisation docs): re-export there with ``weight_type="QUInt8"``.
+Which products: in every decoder block the feed-forward layers (d -> ff, ff -> d) and the self-attention
+projections (in_proj d -> 3d, out_proj d -> d), 12 of the ~13 d x d products per frame and layer at ff = 4d. Their
+weights become int8 per output channel (symmetric ``QInt8``); their inputs are quantised to uint8 on the fly.
+Measured on the trained Bandai GAN's decoder (100 fixed motions, joint error against fp32, mean / max): every
+product per tensor, 16.7 / 120 mm; every product per channel, 12.9 mm; every product but the final feature layer,
+7.8 mm; the feed-forward and self-attention products, 2.3 / 23 mm (the feed-forward ones alone: 1.4 / 15); adding
+the cross-attention's output projection, 5.3 mm. So the cross-attention (computed once per motion), the skip
+projections and the final feature layer stay fp32. u8 activations x s8 weights is the fast path of x86 CPUs with
+AVX-512 VNNI; on x86 CPUs without VNNI that pair can saturate (onnxruntime's quantisation docs): re-export there
+with ``weight_type="QUInt8"``.
 
 Only the decoder is quantised. The generator stays fp32: it is tiny, and its error would pass through the
 decoder. The text encoder stays fp32 too: on the trained Bandai GAN an int8 MiniLM turned embeddings by up to 20
@@ -32,8 +34,10 @@ from lsgan.io import atomic_path, publish
 
 QUANTISED = ("decoder",)
 WEIGHT_TYPE = "QInt8"
-DECODER_FEED_FORWARD = r"\.(linear1|linear2)$"  # the feed-forward Linears of torch's transformer layers
-MINILM_FEED_FORWARD = r"\.layer\.\d+\.(intermediate|output)\.dense$"  # BERT's, for comparisons
+# the products to quantise, by the name of the weight they multiply (the exporter's name: dots become underscores)
+DECODER_INT8 = r"_(linear1|linear2|self_attn_in_proj|self_attn_out_proj)_weight$"  # feed-forward, self-attention
+DECODER_INT8_NODES = "the decoder's feed-forward and self-attention products"
+MINILM_FEED_FORWARD = r"_layer_\d+_(intermediate|output)_dense_weight$"  # BERT's, for comparisons
 REFERENCE_SEED = 0
 _SUBJECTS = ("a person", "someone", "a man", "a woman", "the figure")
 _ACTIONS = ("walks forward", "runs forward", "jumps up", "waves the right hand", "waves the left hand", "squats down",
@@ -43,31 +47,32 @@ _ACTIONS = ("walks forward", "runs forward", "jumps up", "waves the right hand",
 REFERENCE_PROMPTS = tuple(f"{s} {a}" for a in _ACTIONS for s in _SUBJECTS)  # 100 fixed prompts
 
 
-def products_in(graph, modules: str) -> list[str]:
-    """Names of the MatMul/Gemm nodes with a constant weight that the exporter traced inside a module whose name
-    matches the regular expression ``modules`` (torch's dynamo exporter records each node's module scopes)."""
+def products_in(graph, weights: str) -> list[str]:
+    """Names of the MatMul nodes with a constant weight whose traced torch op multiplies a parameter whose name
+    matches the regular expression ``weights`` (torch's dynamo exporter records each node's op with its arguments,
+    parameters as ``%p_<dotted name with underscores>``). MatMul only: dynamic quantisation leaves Gemm alone."""
     constant = {init.name for init in graph.initializer}
-    pattern = re.compile(modules)
+    pattern = re.compile(weights)
 
-    def scopes(node) -> list[str]:
+    def parameters(node) -> list[str]:
         meta = {p.key: p.value for p in node.metadata_props}
-        return ast.literal_eval(meta.get("pkg.torch.onnx.name_scopes", "[]"))  # a list of str literals
+        return re.findall(r"%p_(\w+)", meta.get("pkg.torch.onnx.fx_node", ""))
 
     return [n.name for n in graph.node
-            if n.op_type in ("MatMul", "Gemm") and len(n.input) > 1 and n.input[1] in constant
-            and any(pattern.search(scope) for scope in scopes(n))]
+            if n.op_type == "MatMul" and len(n.input) > 1 and n.input[1] in constant
+            and any(pattern.search(name) for name in parameters(n))]
 
 
-def quantise(src: Path, dst: Path, *, modules: str = DECODER_FEED_FORWARD, weight_type: str = WEIGHT_TYPE) -> list[str]:
-    """Write ``dst``: the graph ``src`` with per-channel int8 weights in the products of ``modules`` (dynamic
-    quantisation), atomically; returns the quantised nodes' names."""
+def quantise(src: Path, dst: Path, *, weights: str = DECODER_INT8, weight_type: str = WEIGHT_TYPE) -> list[str]:
+    """Write ``dst``: the graph ``src`` with per-channel int8 weights in the products of the parameters matching
+    ``weights`` (dynamic quantisation), atomically; returns the quantised nodes' names."""
     import onnx
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     model = onnx.load(str(src))
-    nodes = products_in(model.graph, modules)
+    nodes = products_in(model.graph, weights)
     if not nodes:
-        raise ValueError(f"{src}: no matrix products inside modules matching {modules!r} to quantise")
+        raise ValueError(f"{src}: no matrix products of weights matching {weights!r} to quantise")
     fd, tmp = atomic_path(dst)
     os.close(fd)
     quiet = logging.getLogger().level

@@ -286,7 +286,7 @@ def build_manifest(src: Sources, folder: Path, graphs: dict, tokenizer: dict | N
         quantisation = {"method": "onnxruntime.quantization.quantize_dynamic", "weight_type": q.WEIGHT_TYPE,
                         "weights": "per output channel", "activations": "QUInt8, scaled per tensor at run time",
                         "graphs": [g for g in q.QUANTISED if g in graphs],
-                        "nodes": "the decoder's feed-forward products", "quantised_nodes": quantised}
+                        "nodes": q.DECODER_INT8_NODES, "quantised_nodes": quantised}
         variants["int8"] = {"graphs": {g: f"{g}.int8.onnx" if g in q.QUANTISED else f for g, f in fp32.items()},
                             "quantisation": quantisation}
     files = {f for v in variants.values() for f in v["graphs"].values()}
@@ -339,7 +339,7 @@ def export_onnx(run: str | os.PathLike, out: str | os.PathLike, *, vae: str | os
     tokenizer = write_tokenizer(src.encoder, folder) if src.encoder is not None else None
     quantised = None
     if int8:
-        progress("quantising the decoder's feed-forward products to int8")
+        progress(f"quantising {q.DECODER_INT8_NODES} to int8")
         quantised = q.quantise(folder / "decoder.onnx", folder / "decoder.int8.onnx")
     manifest = build_manifest(src, folder, graphs, tokenizer, quantised, opset)
     if int8:

@@ -23,7 +23,7 @@ import numpy as np
 
 from lsgan.data.features import recover_from_ric
 from lsgan.deploy.manifest import GRAPHS, read_manifest, variant_files, verify
-from lsgan.generation import Generation, Motion, Request
+from lsgan.generation import CPU_DECODE_FRAMES, Generation, Motion, Request, decode_batches
 from lsgan.threads import fixed_threads, start_threads
 
 
@@ -131,12 +131,11 @@ class OnnxMotionModel:
                              "positional table)")
 
     def decode(self, z: np.ndarray, frames: list[int], batch_size: int = 256) -> list[np.ndarray]:
-        """De-normalised features (T_i, 263) per latent; batches of similar lengths, padded frames masked."""
+        """De-normalised features (T_i, 263) per latent; batches of similar lengths within the CPU's frame budget
+        (:func:`lsgan.generation.decode_batches`), padded frames masked."""
         self.check_frames(frames)
         out: list[np.ndarray] = [None] * len(frames)  # type: ignore[list-item]
-        order = sorted(range(len(frames)), key=lambda i: frames[i])
-        for b in range(0, len(order), batch_size):
-            idx = order[b:b + batch_size]
+        for idx in decode_batches(frames, batch_size, CPU_DECODE_FRAMES):
             lengths = np.array([frames[i] for i in idx])
             mask = np.arange(lengths.max())[None] < lengths[:, None]  # (B, T)
             x = self.sessions["decoder"].run(["features"], {"latent": z[idx], "mask": mask})[0]  # (B, T, 263)

@@ -40,7 +40,7 @@ class Job:
 class Batcher:
     """One worker thread feeding ``engine.run`` with batches of queued jobs."""
 
-    def __init__(self, engine: Engine, *, gather_ms: float = 5.0, max_batch: int = 32,
+    def __init__(self, engine: Engine, *, gather_ms: float = 1.0, max_batch: int = 16,
                  max_in_flight: int = 64) -> None:
         self.engine, self.gather_s = engine, gather_ms / 1e3
         self.max_batch, self.max_in_flight = max_batch, max_in_flight

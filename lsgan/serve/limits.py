@@ -19,8 +19,8 @@ class Limits:
     max_body_bytes: int = 16384  # of a request body
     max_in_flight: int = 64  # requests admitted and not yet answered; more get 503 with Retry-After
     timeout_s: float = 10.0  # per request, from admission to its motions; then 503
-    gather_ms: float = 5.0  # how long a pass waits for more requests after the first one
-    max_batch: int = 32  # motions in one engine pass
+    gather_ms: float = 1.0  # how long a pass waits for more requests after the first one
+    max_batch: int = 16  # motions in one engine pass
     store_size: int = 256  # motions kept for download (least recently used are dropped)
 
     def checked(self, model_max_frames: int) -> Limits:
