@@ -49,14 +49,17 @@ print("REPORT" + json.dumps(out))
 """
 
 
-def _blender(fmt: str, path: Path, fps: float) -> dict:
-    settings = scene_settings(fmt, fps, FRAMES).__dict__
-    out = subprocess.run([BLENDER_PYTHON, "-c", SCRIPT, fmt, str(path), json.dumps(settings)], capture_output=True,
-                         text=True, timeout=300)
+def _report(script: str, *args) -> dict:
+    """Run ``script`` in LSGAN_BLENDER_PYTHON with ``args`` (the last items of its sys.argv); its REPORT line."""
+    out = subprocess.run([BLENDER_PYTHON, "-c", script, *map(str, args)], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     line = [x for x in out.stdout.splitlines() if x.startswith("REPORT")]
     assert line, out.stdout[-2000:] + out.stderr[-2000:]
     return json.loads(line[0][len("REPORT"):])
+
+
+def _blender(fmt: str, path: Path, fps: float) -> dict:
+    return _report(SCRIPT, fmt, path, json.dumps(scene_settings(fmt, fps, FRAMES).__dict__))
 
 
 @pytest.fixture(scope="module")
@@ -124,10 +127,7 @@ def test_blender_imports_the_skeleton_glb_as_an_armature(motion, tmp_path):
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     frames = [0, 150, FRAMES - 1]
-    out = subprocess.run([BLENDER_PYTHON, "-c", ARMATURE_SCRIPT, str(path), json.dumps(frames)], capture_output=True,
-                         text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    report = json.loads([x for x in out.stdout.splitlines() if x.startswith("REPORT")][0][len("REPORT"):])
+    report = _report(ARMATURE_SCRIPT, path, json.dumps(frames))
     assert report["armatures"] == 1 and report["meshes"] == 1 and report["deformed"] == [True]
     assert sorted(report["bones"]) == sorted(JOINT_NAMES)
     for f in frames:
@@ -163,10 +163,7 @@ def test_blender_imports_the_rig_glb_as_an_armature(motion, tmp_path, request, r
     assert good["start"] <= good["keys"][0] and good["end"] >= good["keys"][1]
 
     frames = [0, 150, FRAMES - 1]
-    out = subprocess.run([BLENDER_PYTHON, "-c", ARMATURE_SCRIPT, str(tmp_path / "m.glb"), json.dumps(frames)],
-                         capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    report = json.loads([x for x in out.stdout.splitlines() if x.startswith("REPORT")][0][len("REPORT"):])
+    report = _report(ARMATURE_SCRIPT, tmp_path / "m.glb", json.dumps(frames))
     bvh = read_bvh(tmp_path / "m.bvh")
     assert report["armatures"] == 1 and report["meshes"] == 1 and report["deformed"] == [True]
     assert sorted(report["bones"]) == sorted(bvh.names)
@@ -175,3 +172,111 @@ def test_blender_imports_the_rig_glb_as_an_armature(motion, tmp_path, request, r
     error = np.abs(heads - fk[..., [0, 2, 1]] * [1.0, -1.0, 1.0]).max()  # glTF (x, y, z) -> Blender (x, -z, y)
     print(f"{rig}: {len(bvh.names)} bones, Blender's bone heads vs the rig BVH's joints: max {error * 1000:.4f} mm")
     assert error < 1e-3
+
+
+BODY_SCRIPT = r"""
+import json, sys, bpy
+path, settings, frames = sys.argv[-3], json.loads(sys.argv[-2]), json.loads(sys.argv[-1])
+bpy.ops.wm.read_factory_settings(use_empty=True)
+scene = bpy.context.scene
+scene.render.fps, scene.render.fps_base = settings["fps"], settings["fps_base"]
+bpy.ops.import_scene.gltf(filepath=path)
+scene.frame_start, scene.frame_end = settings["frame_start"], settings["frame_end"]
+arms = [o for o in scene.objects if o.type == "ARMATURE"]
+shapes = {pb.custom_shape for a in arms for pb in a.pose.bones if pb.custom_shape is not None}
+meshes = [o for o in scene.objects if o.type == "MESH" and o not in shapes]  # not the importer's bone display
+out = {"armatures": len(arms), "meshes": len(meshes)}
+if len(arms) == 1 and len(meshes) == 1:
+    arm, body = arms[0], meshes[0]
+    out.update(bones=[b.name for b in arm.data.bones], groups=[g.name for g in body.vertex_groups],
+               parent=body.parent == arm, parent_type=body.parent_type,
+               modifier=[m.object == arm for m in body.modifiers if m.type == "ARMATURE"],
+               rest=[list(body.matrix_world @ v.co) for v in body.data.vertices],
+               keys=[list(a.frame_range) for a in bpy.data.actions], start=scene.frame_start, end=scene.frame_end,
+               vertices={}, heads={})
+    for f in frames:
+        scene.frame_set(f)
+        evaluated = body.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        mesh = evaluated.to_mesh()
+        out["vertices"][str(f)] = [list(evaluated.matrix_world @ v.co) for v in mesh.vertices]
+        evaluated.to_mesh_clear()
+        out["heads"][str(f)] = {pb.name: list(arm.matrix_world @ pb.head) for pb in arm.pose.bones}
+print("REPORT" + json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def body_models(tmp_path_factory) -> Path:
+    from body_models import write_models
+
+    return write_models(tmp_path_factory.mktemp("body_models"))
+
+
+@pytest.mark.parametrize("model_type", ["smpl", "smplh", "smplx"])
+def test_blender_imports_the_body_glb_and_deforms_it_like_lsgan(motion, body_models, tmp_path, model_type):
+    """``--glb --body-model``: one armature with the model's joints (the GLB's names) and one mesh it deforms,
+    with a vertex group per joint; with the printed settings the whole motion plays at its speed (without, it is
+    cut at frame 250); at each checked frame Blender's evaluated mesh (depsgraph, Armature modifier) lies on the
+    GLB's linear blend skinning (tests/gltf_reader.py) and on smplx's forward pass of the fitted .npz, within 1 mm,
+    and its bones' heads on the GLB's joints within 0.1 mm. The stand-in models (tests/body_models.py) have
+    vertices in no face (the joint regressor's, SMPL-X's padding): Blender's importer drops them, so the mesh has
+    the vertices the faces use, in the file's order (checked on the bind pose)."""
+    from gltf_reader import accessor, node_index, parse, skinned_vertices, world_matrices
+    from scipy.spatial.transform import Rotation
+    from test_export_body import smplx_output
+
+    from lsgan.data.body_model import read_body_model
+
+    path = tmp_path / "body.glb"
+    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", "--glb", str(motion), "--body-model",
+                          str(body_models), "--model-type", model_type, "-o", str(path)],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "Blender:" in run.stderr and "20 fps" in run.stderr and f"0-{FRAMES - 1}" in run.stderr  # the advice
+    model = read_body_model(body_models, model_type=model_type)
+    doc, blob = parse(path.read_bytes())
+    names = node_index(doc)
+    joint_names = [doc["nodes"][k]["name"] for k in doc["skins"][0]["joints"]]
+    assert joint_names == list(model.joint_names)
+
+    speed = _blender("glb", path, 20.0)  # the frame range, as for the skeleton GLB
+    good, bad = speed["settings"], speed["defaults"]
+    assert good["rate"] == 20 and good["keys"] == pytest.approx([0, FRAMES - 1], abs=1e-3)
+    assert good["start"] <= good["keys"][0] and good["end"] >= good["keys"][1]
+    assert bad["rate"] == 24 and bad["end"] == 250 and bad["keys"][1] == pytest.approx((FRAMES - 1) / 20 * 24, abs=1e-3)
+
+    frames = [0, 150, FRAMES - 1]
+    report = _report(BODY_SCRIPT, path, json.dumps(scene_settings("glb", 20.0, FRAMES).__dict__), json.dumps(frames))
+    assert report["armatures"] == 1 and report["meshes"] == 1
+    assert sorted(report["bones"]) == sorted(joint_names) and len(report["bones"]) == model.num_joints
+    assert sorted(report["groups"]) == sorted(joint_names)
+    assert report["parent"] and (report["parent_type"] == "ARMATURE" or report["modifier"] == [True])
+    assert report["keys"] == [[0, FRAMES - 1]] and report["start"] == 0 and report["end"] == FRAMES - 1
+
+    prim = doc["meshes"][0]["primitives"][0]
+    used = np.unique(accessor(doc, blob, prim["indices"]))
+    assert len(used) == len(np.unique(model.faces)) and len(report["rest"]) == len(used)
+    to_blender = lambda a: np.asarray(a)[..., [0, 2, 1]] * [1.0, -1.0, 1.0]  # noqa: E731  glTF (x,y,z) -> (x,-z,y)
+    rest = accessor(doc, blob, prim["attributes"]["POSITION"]).astype(np.float64)[used]
+    assert np.abs(np.array(report["rest"]) - to_blender(rest)).max() < 1e-6  # the same vertices, in order
+
+    with np.load(path.with_suffix(".npz"), allow_pickle=False) as npz:
+        oracle = smplx_output(body_models, model_type, npz["poses"][frames], npz["trans"][frames], npz["betas"])[1]
+    blender = np.array([report["vertices"][str(f)] for f in frames])
+    a, b = blender[0] - blender[0].mean(axis=0), blender[1] - blender[1].mean(axis=0)
+    rigid = Rotation.align_vectors(b, a)[0].apply(a)  # the best rigid motion of frame 0's mesh onto frame 150's
+    moved = np.linalg.norm(b - rigid, axis=-1).max()
+    assert moved > 0.05, moved  # the body bends between the frames, beyond moving and turning as a whole
+    vertex_error = joint_error = smplx_error = 0.0
+    for i, f in enumerate(frames):
+        ours = to_blender(skinned_vertices(doc, blob, f)[used])
+        vertex_error = max(vertex_error, np.abs(blender[i] - ours).max())
+        smplx_error = max(smplx_error, np.abs(blender[i] - to_blender(oracle[i][used])).max())
+        world = world_matrices(doc, blob, f)
+        heads = np.array([report["heads"][str(f)][name] for name in joint_names])
+        joint_error = max(joint_error, np.abs(heads - to_blender(world[[names[n] for n in joint_names], :3, 3])).max())
+    print(f"{model_type}: {len(used)} vertices, {model.num_joints} bones; Blender's evaluated mesh vs lsgan's skinning "
+          f"max {vertex_error * 1000:.4f} mm, vs smplx {smplx_error * 1000:.4f} mm; bone heads vs the GLB's joints "
+          f"max {joint_error * 1000:.4f} mm; frames {frames[0]} and {frames[1]} differ by {moved:.3f} m beyond a "
+          "rigid motion")
+    assert vertex_error < 1e-3 and smplx_error < 1e-3 and joint_error < 1e-4
