@@ -6,11 +6,12 @@ with two training steps each: their speed is the trained ones', their motions ar
 thread with a keep-alive connection that sends POST /v1/generate (a prompt from a fixed list, ``--frames``, a
 random seed) as soon as its previous answer has arrived, for ``--seconds`` per level. Reported per level:
 requests/s, latency p50/p95/p99 (send to last byte), errors (anything but a 200, or a failed connection), the
-mean engine batch size, and the server's peak memory so far (VmHWM). Then ``engine.run`` of the same kind of
+mean engine batch size, and the server's peak memory so far (VmHWM, its process and the engine's added). Then ``engine.run`` of the same kind of
 request one at a time in this process, for as long. The 1-minute load average is printed at the start and the end.
 
     python benchmarks/serve.py --gan runs/bandai-gan --vae runs/bandai-vae
     python benchmarks/serve.py --clients 1,8,32 --seconds 20 --json serve.json
+    python benchmarks/serve.py --model bandai-onnx --int8 --unique-prompts   # an export-model folder
 """
 from __future__ import annotations
 
@@ -57,11 +58,16 @@ def demo_size_models(d: Path) -> tuple[Path, Path]:
     return d / "gan", d / "vae"
 
 
+def serve_options(models: dict[str, str | bool]) -> list[str]:
+    """``load_engine``'s keywords (gan and vae, or model and int8) as ``lsgan serve`` options."""
+    return [x for k, v in models.items() if v for x in ([f"--{k}"] if v is True else [f"--{k}", str(v)])]
+
+
 class Server:
     """``lsgan serve`` on 127.0.0.1, a free port."""
 
-    def __init__(self, gan: Path, vae: Path, extra: list[str]) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "lsgan.cli", "serve", "--gan", str(gan), "--vae", str(vae),
+    def __init__(self, models: dict[str, str | bool], extra: list[str]) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "lsgan.cli", "serve", *serve_options(models),
                                       "--host", "127.0.0.1", "--port", "0", *extra], stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         threading.Thread(target=lambda: [self.lines.append(x.rstrip()) for x in self.proc.stderr], daemon=True).start()
@@ -73,14 +79,29 @@ class Server:
             time.sleep(0.1)
         self.port = int(found[0].group(1))
 
+    def pids(self) -> list[int]:
+        """The server and its children (the engine's process, lsgan.serve.worker)."""
+        try:
+            children = Path(f"/proc/{self.proc.pid}/task/{self.proc.pid}/children").read_text().split()
+        except OSError:
+            children = []
+        return [self.proc.pid, *map(int, children)]
+
     def peak_rss_mb(self) -> float:
-        text = Path(f"/proc/{self.proc.pid}/status").read_text()
-        return int(re.search(r"VmHWM:\s+(\d+) kB", text).group(1)) / 1024
+        """The peak resident memory of the server and its engine process, added."""
+        total = 0
+        for pid in self.pids():
+            text = Path(f"/proc/{pid}/status").read_text()
+            total += int(re.search(r"VmHWM:\s+(\d+) kB", text).group(1))
+        return total / 1024
 
     def cpu_s(self) -> float:
-        """CPU seconds the server has used (all its threads)."""
-        fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        """CPU seconds the server and its engine process have used (all their threads)."""
+        ticks = 0
+        for pid in self.pids():
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            ticks += int(fields[11]) + int(fields[12])
+        return ticks / os.sysconf("SC_CLK_TCK")
 
     def stop(self) -> int:
         self.proc.send_signal(signal.SIGTERM)
@@ -144,11 +165,11 @@ def level(server: Server, clients: int, seconds: float, frames: int, seed: int, 
             "server_cpu_cores": server_cpu / elapsed, "client_cpu_cores": own_cpu / elapsed}
 
 
-def in_process(gan: Path, vae: Path, seconds: float, frames: int, unique: bool) -> dict:
+def in_process(models: dict[str, str | bool], seconds: float, frames: int, unique: bool) -> dict:
     """``engine.run`` of one request at a time in this process, for ``seconds`` (the server's prompt cache too)."""
     from lsgan.serve.engine import Item, load_engine
 
-    engine = load_engine(gan=str(gan), vae=str(vae))
+    engine = load_engine(**models)
     rng, lat = random.Random(1), []
     until = time.perf_counter() + seconds
     start = time.perf_counter()
@@ -165,6 +186,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gan", type=Path, help="GAN run (default: demo-size models made for the benchmark)")
     parser.add_argument("--vae", type=Path)
+    parser.add_argument("--model", type=Path, help="an `lsgan export-model --onnx` folder instead (onnxruntime)")
+    parser.add_argument("--int8", action="store_true", help="--model: its int8 decoder")
     parser.add_argument("--clients", default="1,8,32", help="concurrent clients per level, comma-separated")
     parser.add_argument("--seconds", type=float, default=20.0, help="per level, and for the in-process run")
     parser.add_argument("--frames", type=int, default=120)
@@ -176,13 +199,19 @@ def main() -> None:
     args = parser.parse_args()
     if (args.gan is None) != (args.vae is None):
         parser.error("give both --gan and --vae, or neither")
+    if args.model and args.gan or args.int8 and not args.model:
+        parser.error("give --gan and --vae, or --model [--int8]")
     levels = [int(c) for c in args.clients.split(",")]
     load_start = os.getloadavg()[0]
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; load average (1 min) "
           f"at start {load_start:.2f}", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        gan, vae = (args.gan, args.vae) if args.gan else demo_size_models(Path(tmp))
-        server = Server(gan, vae, args.server_args.split())
+        if args.model:
+            models: dict[str, str | bool] = {"model": str(args.model), "int8": args.int8}
+        else:
+            gan, vae = (args.gan, args.vae) if args.gan else demo_size_models(Path(tmp))
+            models = {"gan": str(gan), "vae": str(vae)}
+        server = Server(models, args.server_args.split())
         try:
             level(server, 2, 2.0, args.frames, seed=0, unique=args.unique_prompts)  # warm-up
             rows = []
@@ -195,7 +224,7 @@ def main() -> None:
                       f"clients {r['client_cpu_cores']:.2f} cores", flush=True)
         finally:
             code = server.stop()
-        seq = in_process(gan, vae, args.seconds, args.frames, args.unique_prompts)
+        seq = in_process(models, args.seconds, args.frames, args.unique_prompts)
     print(f"in-process, one request at a time (engine.run): {seq['rps']:.1f} req/s  p50 {seq['p50_ms']:.1f}  "
           f"p95 {seq['p95_ms']:.1f}  p99 {seq['p99_ms']:.1f} ms")
     best = max(rows, key=lambda r: r["clients"])
@@ -209,7 +238,7 @@ def main() -> None:
             "load_average_1min": {"start": load_start, "end": load_end}, "frames": args.frames,
             "prompts": "unique" if args.unique_prompts else f"{len(PROMPTS)} repeated",
             "seconds": args.seconds,
-            "models": {"gan": str(args.gan or "demo-size, untrained"), "vae": str(args.vae or "")},
+            "models": models if args.model or args.gan else {"gan": "demo-size, untrained"},
             "levels": rows, "in_process": seq, "server_exit_code": code}, indent=1))
 
 

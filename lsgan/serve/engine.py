@@ -69,6 +69,9 @@ class Engine:
     def run(self, items: list[Item]) -> list[Result]:
         raise NotImplementedError
 
+    def close(self) -> None:
+        """Let go of what the engine holds (a child process: :class:`lsgan.serve.worker.EngineProcess`)."""
+
     def describe(self) -> str:
         return f"{self.backend}, {self.condition}-conditioned, up to {self.max_frames} frames"
 

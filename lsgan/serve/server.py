@@ -1,7 +1,8 @@
-"""``lsgan serve``: load the models once, then run the API under uvicorn until SIGTERM or Ctrl-C.
+"""``lsgan serve``: load the models once (in the engine's own process, :mod:`lsgan.serve.worker`), then run the
+API under uvicorn until SIGTERM or Ctrl-C.
 
 SIGTERM stops accepting connections, lets the requests in flight finish (uvicorn's graceful shutdown), stops the
-engine's worker and returns normally, so the command exits 0. Ctrl-C does the same and then exits 130, as every
+engine's worker thread and process and returns normally, so the command exits 0. Ctrl-C does the same and then exits 130, as every
 lsgan command does.
 """
 from __future__ import annotations
@@ -14,7 +15,7 @@ import socket
 import sys
 from collections.abc import Callable
 
-from lsgan.serve.engine import load_engine
+from lsgan.serve.worker import EngineProcess
 from lsgan.serve.limits import Limits
 
 
@@ -52,9 +53,8 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
           say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True)) -> None:
     """Serve ``--gan/--vae`` checkpoints or an ONNX ``--model`` folder on ``host:port`` until stopped."""
     try:
-        import uvicorn
-
-        from lsgan.serve.app import create_app
+        import fastapi  # noqa: F401 - checked before minutes of loading
+        import uvicorn  # noqa: F401
     except ImportError as e:
         raise RuntimeError(f"lsgan serve needs FastAPI and uvicorn ({e.name} is missing): "
                            "pip install 'lsgan[serve]'") from None
@@ -65,12 +65,26 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
         raise ValueError("the API key is empty")
     sock = listen(host, port)  # first: a port in use fails before minutes of loading
     try:
-        engine = load_engine(gan=gan, vae=vae, model=model, int8=int8, device=device,
-                             text_encoder_path=text_encoder_path, text_cache=text_cache)
-        limits = (limits or Limits()).checked(engine.max_frames)
+        engine = EngineProcess(gan=gan, vae=vae, model=model, int8=int8, device=device,
+                               text_encoder_path=text_encoder_path, text_cache=text_cache)
     except BaseException:
         sock.close()
         raise
+    try:
+        limits = (limits or Limits()).checked(engine.max_frames)
+        _run(engine, limits, sock, host, api_key, say)
+    finally:
+        engine.close()
+        sock.close()
+
+
+def _run(engine: EngineProcess, limits: Limits, sock: socket.socket, host: str, api_key: str | None,
+         say: Callable[[str], None]) -> None:
+    """uvicorn on ``sock`` over ``engine`` until SIGTERM or Ctrl-C; the requests in flight finish first."""
+    import uvicorn
+
+    from lsgan.serve.app import create_app
+
     if not is_loopback(host):
         say(f"warning: listening on {host}: other machines can reach this server"
             + ("" if api_key else " and use it without a key (--api-key)"))
@@ -79,7 +93,7 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
                                            access_log=False, timeout_graceful_shutdown=limits.timeout_s + 5,
                                            server_header=False))
     gc.collect()
-    gc.freeze()  # the models' objects stay out of every later collection: no full-GC pause of ~100 ms mid-request
+    gc.freeze()  # the app's objects stay out of every later collection (the child does so for the models)
     sock.listen(2048)  # from here connections wait in the backlog until uvicorn accepts them
     url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
     say(f"lsgan serve: {engine.describe()}, loaded in {engine.load_s:.1f} s; {url} (API /v1, docs {url}docs); "
