@@ -10,11 +10,13 @@ from __future__ import annotations
 import gc
 import ipaddress
 import logging
+import os
 import signal
 import socket
 import sys
 from collections.abc import Callable
 
+from lsgan.serve.engine import Engine, load_engine
 from lsgan.serve.worker import EngineProcess
 from lsgan.serve.limits import Limits
 
@@ -65,8 +67,10 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
         raise ValueError("the API key is empty")
     sock = listen(host, port)  # first: a port in use fails before minutes of loading
     try:
-        engine = EngineProcess(gan=gan, vae=vae, model=model, int8=int8, device=device,
-                               text_encoder_path=text_encoder_path, text_cache=text_cache)
+        args = dict(gan=gan, vae=vae, model=model, int8=int8, device=device, text_encoder_path=text_encoder_path,
+                    text_cache=text_cache)
+        # the engine's own process needs POSIX pipes handed to a child (pass_fds); elsewhere it runs in this one
+        engine = EngineProcess(**args) if os.name == "posix" else load_engine(**args)
     except BaseException:
         sock.close()
         raise
@@ -78,7 +82,7 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
         sock.close()
 
 
-def _run(engine: EngineProcess, limits: Limits, sock: socket.socket, host: str, api_key: str | None,
+def _run(engine: Engine, limits: Limits, sock: socket.socket, host: str, api_key: str | None,
          say: Callable[[str], None]) -> None:
     """uvicorn on ``sock`` over ``engine`` until SIGTERM or Ctrl-C; the requests in flight finish first."""
     import uvicorn

@@ -4,7 +4,8 @@ Between two operations torch takes Python's GIL back, and in the server's proces
 that format answers hold it for much of a pass under load. Measured with the Bandai demo-size models, 16 motions
 a pass: a busy Python thread beside the engine doubled the decoder's pass (34 -> 69 ms), the same busy loop in
 another process cost 17% (40 ms). So ``lsgan serve`` runs :func:`lsgan.serve.engine.load_engine` in a child
-(``python -m lsgan.serve.worker``) behind :class:`EngineProcess`, which keeps the :class:`Engine` interface.
+(``python -m lsgan.serve.worker``) behind :class:`EngineProcess`, which keeps the :class:`Engine` interface
+(on POSIX systems: the child inherits its pipes by ``pass_fds``; elsewhere the server keeps the engine itself).
 
 They talk over two pipes in frames of a JSON header and raw bytes: requests as JSON, motions back as float32
 joints; nothing is unpickled. The child ignores SIGINT and SIGTERM (the server drains its requests, then closes
