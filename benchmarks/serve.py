@@ -6,7 +6,8 @@ with two training steps each: their speed is the trained ones', their motions ar
 thread with a keep-alive connection that sends POST /v1/generate (a prompt from a fixed list, ``--frames``, a
 random seed) as soon as its previous answer has arrived, for ``--seconds`` per level. Reported per level:
 requests/s, latency p50/p95/p99 (send to last byte), errors (anything but a 200, or a failed connection), the
-mean engine batch size, and the server's peak memory so far (VmHWM, its process and the engine's added). Then ``engine.run`` of the same kind of
+mean engine batch size, and the server's peak memory so far (VmHWM, its process and its engine processes added).
+Then ``engine.run`` of the same kind of
 request one at a time in this process, for as long. The 1-minute load average is printed at the start and the end.
 
     python benchmarks/serve.py --gan runs/bandai-gan --vae runs/bandai-vae
@@ -80,15 +81,17 @@ class Server:
         self.port = int(found[0].group(1))
 
     def pids(self) -> list[int]:
-        """The server and its children (the engine's process, lsgan.serve.worker)."""
-        try:
-            children = Path(f"/proc/{self.proc.pid}/task/{self.proc.pid}/children").read_text().split()
-        except OSError:
-            children = []
-        return [self.proc.pid, *map(int, children)]
+        """The server and its children (the engine processes, lsgan.serve.worker)."""
+        children = []
+        for task in Path(f"/proc/{self.proc.pid}/task").iterdir():
+            try:
+                children += (task / "children").read_text().split()
+            except OSError:
+                pass
+        return [self.proc.pid, *sorted(set(map(int, children)))]
 
     def peak_rss_mb(self) -> float:
-        """The peak resident memory of the server and its engine process, added."""
+        """The peak resident memory of the server and its engine processes, added."""
         total = 0
         for pid in self.pids():
             text = Path(f"/proc/{pid}/status").read_text()
@@ -96,7 +99,7 @@ class Server:
         return total / 1024
 
     def cpu_s(self) -> float:
-        """CPU seconds the server and its engine process have used (all their threads)."""
+        """CPU seconds the server and its engine processes have used (all their threads)."""
         ticks = 0
         for pid in self.pids():
             fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()

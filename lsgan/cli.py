@@ -965,6 +965,7 @@ Examples:
   lsgan serve --model gan-onnx --int8 --port 8080
   LSGAN_API_KEY=secret lsgan serve --gan runs/gan --vae runs/vae --host 0.0.0.0   # reachable from other machines
   lsgan serve --gan runs/gan --vae runs/vae --max-num 4 --max-in-flight 32 --timeout 5
+  lsgan serve --gan runs/gan --vae runs/vae --workers 1     # one engine process (least memory)
   curl -s localhost:8000/v1/generate -H 'Content-Type: application/json' -d '{"text": "a person waves", "seed": 1}'
 \b
 The API (endpoints, limits, errors): docs/api.md, and /docs on the running server. SIGTERM finishes the requests
@@ -984,6 +985,9 @@ in flight and exits 0.
 @click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder.")
 @click.option("--text-cache", default=1024, show_default=True, type=click.IntRange(0),
               help="--gan/--vae: prompt embeddings kept across requests (0: none).")
+@click.option("--workers", type=click.IntRange(1),
+              help="Engine processes, each with its own copy of the models, whose passes run side by side under "
+                   "load (default: one per core, at most 4; one on a GPU).")
 @click.option("--max-text-chars", default=500, show_default=True, type=click.IntRange(1), help="Longest prompt.")
 @click.option("--min-frames", default=4, show_default=True, type=click.IntRange(1), help="Shortest motion.")
 @click.option("--max-frames", type=click.IntRange(1),
@@ -997,11 +1001,12 @@ in flight and exits 0.
               help="Seconds a request may take; then 503.")
 @click.option("--gather-ms", default=1.0, show_default=True, type=click.FloatRange(0, 1000),
               help="How long a pass waits for more requests to batch with the first.")
-@click.option("--max-batch", default=16, show_default=True, type=click.IntRange(1),
+@click.option("--max-batch", default=8, show_default=True, type=click.IntRange(1),
               help="Motions in one engine pass (smaller passes let answers go out while the next pass runs).")
 @click.option("--store-size", default=256, show_default=True, type=click.IntRange(1),
               help="Motions kept for download (least recently used dropped first).")
-def serve(gan, vae, model, int8, host, port, api_key, device, text_encoder_path, text_cache, **limits) -> None:
+def serve(gan, vae, model, int8, host, port, api_key, device, text_encoder_path, text_cache, workers,
+          **limits) -> None:
     """Serve the model over HTTP: the API (/v1/generate, /v1/motions/ID.glb|.bvh|.npy, /v1/info), its OpenAPI
     docs (/docs) and a page at / to type a sentence, watch the motion and download it. Models load once;
     concurrent requests are batched into one generator and decoder pass."""
@@ -1019,7 +1024,7 @@ def serve(gan, vae, model, int8, host, port, api_key, device, text_encoder_path,
         raise click.UsageError("--text-encoder-path and --device go with --gan/--vae (an export runs on the CPU)")
     try:
         run(gan=gan, vae=vae, model=model, int8=int8, host=host, port=port, api_key=api_key, limits=Limits(**limits),
-            device=device, text_encoder_path=text_encoder_path, text_cache=text_cache)
+            device=device, text_encoder_path=text_encoder_path, text_cache=text_cache, workers=workers)
     except (ValueError, OSError, RuntimeError, TextEncoderUnavailable) as e:
         _fail(describe(e))
 

@@ -241,9 +241,9 @@ class ThreadPolicy:
     def update(self) -> int:
         """Set torch's count for the next step (only when it changes); returns it."""
         n = self.decide()
-        if n != self.threads:
+        if n != _torch().get_num_threads():  # not self.threads: another policy may have set torch's count since
             _torch().set_num_threads(n)
-            self.threads = n
+        self.threads = n
         return n
 
     def __enter__(self) -> ThreadPolicy:

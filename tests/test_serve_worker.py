@@ -1,5 +1,5 @@
-"""The engine's own process (lsgan.serve.worker): the same motions as in the server's process, failures relayed as
-one line, and no process left behind when the server stops or dies."""
+"""The engine processes (lsgan.serve.worker): the same motions as in the server's process, failures relayed as
+one line, passes side by side on two engines, and no process left behind when the server stops or dies."""
 from __future__ import annotations
 
 import os
@@ -12,15 +12,21 @@ import pytest
 import torch
 from serve_client import Server
 
+from lsgan.serve.batcher import Batcher
 from lsgan.serve.engine import Item, load_engine
+from lsgan.serve.server import MAX_WORKERS
 from lsgan.serve.worker import EngineProcess
+from lsgan.threads import usable_cpus
 
 pytestmark = pytest.mark.slow
+SAME = 1e-5  # metres: "the same motion" (as tests/test_serve.py)
 ITEMS = [Item(text="a person walks forward", frames=40, seed=3), Item(text="a person jumps", frames=17, num=2, seed=9)]
 
 
 def children(pid: int) -> list[int]:
-    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    """The child processes of ``pid`` (of any of its threads)."""
+    tasks = Path(f"/proc/{pid}/task").iterdir()
+    return sorted({int(c) for task in tasks for c in (task / "children").read_text().split()})
 
 
 def alive(pid: int) -> bool:
@@ -69,21 +75,56 @@ def test_a_load_failure_is_the_same_one_line(serve_models: Path, tmp_path: Path)
     assert str(child.value) == str(local.value)
 
 
-def test_the_engine_process_ends_with_the_server(serve_models: Path) -> None:
-    """One engine child per server; SIGTERM (drain, exit 0) ends it, and so does the server's sudden death."""
-    for death in ("SIGTERM", "SIGKILL"):
-        s = Server("--gan", "gan", "--vae", "vae", cwd=serve_models)
+def test_the_engine_processes_end_with_the_server(serve_models: Path) -> None:
+    """One engine child per usable core (at most MAX_WORKERS) by default, or --workers of them; SIGTERM (drain,
+    exit 0) ends them all, and so does the server's sudden death."""
+    for death, extra, count in (("SIGTERM", [], min(usable_cpus(), MAX_WORKERS)), ("SIGKILL", ["--workers", 3], 3)):
+        s = Server("--gan", "gan", "--vae", "vae", *extra, cwd=serve_models)
         try:
             kids = children(s.proc.pid)
-            assert len(kids) == 1 and b"lsgan.serve.worker" in Path(f"/proc/{kids[0]}/cmdline").read_bytes()
+            assert len(kids) == count, s.stderr
+            assert all(b"lsgan.serve.worker" in Path(f"/proc/{k}/cmdline").read_bytes() for k in kids)
+            assert (f"{count} engine processes" if count > 1 else "one engine process") in s.stderr
             status, out = s.json("POST", "/v1/generate", {"text": "a person waves", "frames": 20, "seed": 1})
             assert status == 200 and len(out["motions"][0]["joints"]) == 20
             os.kill(s.proc.pid, getattr(signal, death))
             code = s.proc.wait(30)
             assert code == (0 if death == "SIGTERM" else -signal.SIGKILL), s.stderr
             deadline = time.monotonic() + 10
-            while alive(kids[0]) and time.monotonic() < deadline:
+            while any(map(alive, kids)) and time.monotonic() < deadline:
                 time.sleep(0.05)
-            assert not alive(kids[0]), f"the engine process outlived the server ({death})"
+            assert not any(map(alive, kids)), f"an engine process outlived the server ({death})"
         finally:
             s.stop()
+
+
+def test_passes_run_side_by_side_on_two_engines(serve_models: Path) -> None:
+    """Two engine processes behind one batcher: a lone request goes to the first engine, on the free cores; a
+    burst fills passes of max_batch motions on both engines at once, one thread each on two cores; every motion
+    equals the lone engine's for its seed (SAME, 1e-5 m: thread counts only reorder float sums)."""
+    args = dict(gan=str(serve_models / "gan"), vae=str(serve_models / "vae"))
+    engines = [EngineProcess(**args), EngineProcess(**args)]
+    batcher = Batcher(engines, gather_ms=20, max_batch=2, cores=2)
+    items = [Item(text=f"a person walks {k} steps", frames=24 + k, seed=k) for k in range(12)]
+    try:
+        job = batcher.submit(items[0])
+        job.future.result(60)
+        batcher.done(job)
+        lone = batcher.recent[-1]
+        assert (lone.engine, lone.beside, lone.motions, lone.threads) == (0, 0, 1, None)  # its engine's own policy
+        jobs = [batcher.submit(it) for it in items]
+        results = [j.future.result(120) for j in jobs]
+        for j in jobs:
+            batcher.done(j)
+        burst = list(batcher.recent)[1:]
+        assert sum(p.motions for p in burst) == len(items) and max(p.motions for p in burst) == 2
+        assert {p.engine for p in burst} == {0, 1} and any(p.beside == 1 for p in burst)
+        assert all(p.threads == 1 for p in burst if p.beside)  # two cores shared by two passes
+        for it, got in zip(items, results):
+            want = engines[0].run([it], threads=2)[0].joints[0]
+            assert got.joints[0].shape == (it.frames, 22, 3)
+            np.testing.assert_allclose(got.joints[0], want, rtol=0, atol=SAME)
+    finally:
+        batcher.close()
+        for e in engines:
+            e.close()

@@ -1,4 +1,4 @@
-"""The HTTP API of ``lsgan serve`` (FastAPI): ``create_app(engine, limits)``.
+"""The HTTP API of ``lsgan serve`` (FastAPI): ``create_app(engines, limits)``.
 
 Every answer other than 200 is JSON ``{"error": "<one line>"}``: 4xx for what the client sent, 503 when the server
 is busy or a request timed out (with Retry-After), 500 only for a bug of ours (logged with its traceback, never
@@ -11,6 +11,7 @@ import json
 import logging
 import secrets
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -144,19 +145,23 @@ def info_of(engine: Engine, limits: Limits, auth: bool) -> dict:
     }
 
 
-def create_app(engine: Engine, limits: Limits, *, api_key: str | None = None) -> FastAPI:
-    """The API over ``engine``: its batcher and store start with the app and stop (draining) with it."""
+def create_app(engines: Engine | list[Engine], limits: Limits, *, api_key: str | None = None) -> FastAPI:
+    """The API over one engine or several alike (passes side by side): the batcher and store start with the app
+    and stop (draining) with it."""
     from contextlib import asynccontextmanager
 
+    engine = engines[0] if isinstance(engines, list) else engines  # what the API says of the model
     state: dict = {}
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        state["batcher"] = Batcher(engine, gather_ms=limits.gather_ms, max_batch=limits.max_batch,
+        state["batcher"] = Batcher(engines, gather_ms=limits.gather_ms, max_batch=limits.max_batch,
                                    max_in_flight=limits.max_in_flight)
         state["store"] = MotionStore(limits.store_size)
+        state["writer"] = ThreadPoolExecutor(2, thread_name_prefix="lsgan-answer")  # few threads to share the GIL
         yield
         await run_in_threadpool(state["batcher"].close)
+        state["writer"].shutdown()
 
     app = FastAPI(title="lsgan", version=__version__, lifespan=lifespan, summary="Text and action to motion: "
                   "a GAN in a motion VAE's latent space. Errors are {\"error\": \"one line\"}.")
@@ -186,8 +191,9 @@ def create_app(engine: Engine, limits: Limits, *, api_key: str | None = None) ->
             raise ApiError(415, f"send the body as JSON (Content-Type: application/json), not {short(kind or 'none')}")
         item = to_item(parse_json(await request.body()), engine, limits)
         job, result = await _run(state["batcher"], item, limits.timeout_s)
-        body = await run_in_threadpool(_respond, state["store"], item, result, engine.fps,
-                                       1e3 * (job.started_at - job.queued_at), arrived)
+        body = await asyncio.get_running_loop().run_in_executor(
+            state["writer"], _respond, state["store"], item, result, engine.fps, 1e3 * (job.started_at - job.queued_at),
+            arrived)
         return Response(body, media_type="application/json")
 
     @v1.get("/motions/{name}", tags=["api"], response_class=Response,

@@ -60,13 +60,16 @@ class Engine:
     """What the server needs of a model: its condition, actions and frame bound, and ``run(items)``."""
 
     backend = ""
+    device = "cpu"  # where it computes (torch's device)
     condition = "text"  # or "action"
     actions: list[str] = []
     fps: float = float(FPS)
     max_frames: int = 196
     load_s = 0.0  # seconds to load and warm up
 
-    def run(self, items: list[Item]) -> list[Result]:
+    def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
+        """One pass over ``items``; ``threads``: intra-op threads for it where the backend can change them per
+        pass (torch; None: the engine's own policy)."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -96,6 +99,7 @@ class TorchEngine(Engine):
         self.actions = list(self.loaded.meta.get("extra", {}).get("action_names", [])) if cfg.cond == "action" else []
         self.max_frames = self.loaded.max_frames
         self.batch_size = batch_size
+        self.device = str(self.loaded.device)
         import torch
 
         from lsgan.threads import ThreadPolicy
@@ -103,16 +107,21 @@ class TorchEngine(Engine):
         # one policy for the server's life, re-measuring every 0.5 s the cores other processes leave free (a fresh
         # one per pass would judge by the runnable tasks of one instant); on a GPU, torch's own count
         self.threads = ThreadPolicy(threads=None if self.loaded.device.type == "cpu" else torch.get_num_threads())
+        self._fixed: dict[int, ThreadPolicy] = {}  # a pass's given count (the batcher's, beside other passes)
 
-    def run(self, items: list[Item]) -> list[Result]:
+    def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
         import torch
 
         from lsgan.generate import draw_noise, noise_dim, run_models
+        from lsgan.threads import ThreadPolicy
 
         dim = noise_dim(self.loaded.model, self.loaded.meta)
         noise = torch.cat([draw_noise(it.seed, it.num, dim)[0] for it in items])
+        policy = self.threads
+        if threads is not None and self.loaded.device.type == "cpu":
+            policy = self._fixed.setdefault(threads, ThreadPolicy(threads=threads))
         feats, timings, _ = run_models(self.loaded, [it.request for it in items], [it.num for it in items], noise,
-                                       batch_size=self.batch_size, threads=self.threads)
+                                       batch_size=self.batch_size, threads=policy)
         return _results(items, [recover_from_ric(f.astype(np.float32)) for f in feats], timings)
 
 
@@ -131,7 +140,8 @@ class OnnxEngine(Engine):
         self.max_frames = self.model.max_frames
         self.batch_size = batch_size
 
-    def run(self, items: list[Item]) -> list[Result]:
+    def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
+        """``threads`` is ignored: onnxruntime fixes a session's threads when it is made (``load_engine``)."""
         from lsgan.deploy.runtime import draw_noise
 
         dim = int(self.model.manifest["noise_dim"])
@@ -142,14 +152,15 @@ class OnnxEngine(Engine):
 
 
 def load_engine(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
-                device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024) -> Engine:
-    """The torch engine (``gan`` and ``vae``; ``text_cache`` prompt embeddings kept) or the ONNX one (``model``),
-    warmed up by one short pass."""
+                device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024,
+                threads: int | None = None) -> Engine:
+    """The torch engine (``gan`` and ``vae``; ``text_cache`` prompt embeddings kept) or the ONNX one (``model``;
+    ``threads`` per session, default the free cores), warmed up by one short pass."""
     t0 = time.perf_counter()
     if model is not None:
         if gan or vae or text_encoder_path:
             raise ValueError("give an exported folder (--model) or checkpoints (--gan and --vae), not both")
-        engine: Engine = OnnxEngine(model, variant="int8" if int8 else "fp32")
+        engine: Engine = OnnxEngine(model, variant="int8" if int8 else "fp32", threads=threads)
     else:
         if not gan or not vae:
             raise ValueError("give --gan RUN and --vae RUN (or --model EXPORT_DIR)")

@@ -1,9 +1,12 @@
-"""``lsgan serve``: load the models once (in the engine's own process, :mod:`lsgan.serve.worker`), then run the
-API under uvicorn until SIGTERM or Ctrl-C.
+"""``lsgan serve``: load the models once in each engine process (:mod:`lsgan.serve.worker`), then run the API
+under uvicorn until SIGTERM or Ctrl-C.
+
+Engine processes: by default one per usable core, at most :data:`MAX_WORKERS`, so that passes run side by side
+on one thread each under load (:mod:`lsgan.serve.batcher`); one when the engine computes on a GPU.
 
 SIGTERM stops accepting connections, lets the requests in flight finish (uvicorn's graceful shutdown), stops the
-engine's worker thread and process and returns normally, so the command exits 0. Ctrl-C does the same and then exits 130, as every
-lsgan command does.
+batcher's threads and the engine processes and returns normally, so the command exits 0. Ctrl-C does the same and
+then exits 130, as every lsgan command does.
 """
 from __future__ import annotations
 
@@ -17,8 +20,11 @@ import sys
 from collections.abc import Callable
 
 from lsgan.serve.engine import Engine, load_engine
-from lsgan.serve.worker import EngineProcess
 from lsgan.serve.limits import Limits
+from lsgan.serve.worker import EngineProcess
+from lsgan.threads import usable_cpus
+
+MAX_WORKERS = 4  # engine processes by default: each holds its own copy of the models
 
 
 def is_loopback(host: str) -> bool:
@@ -52,8 +58,10 @@ def listen(host: str, port: int) -> socket.socket:
 def serve(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
           host: str = "127.0.0.1", port: int = 8000, api_key: str | None = None, limits: Limits | None = None,
           device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024,
+          workers: int | None = None,
           say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True)) -> None:
-    """Serve ``--gan/--vae`` checkpoints or an ONNX ``--model`` folder on ``host:port`` until stopped."""
+    """Serve ``--gan/--vae`` checkpoints or an ONNX ``--model`` folder on ``host:port`` until stopped, with
+    ``workers`` engine processes (default: :func:`start_engines`'s)."""
     try:
         import fastapi  # noqa: F401 - checked before minutes of loading
         import uvicorn  # noqa: F401
@@ -67,22 +75,44 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
         raise ValueError("the API key is empty")
     sock = listen(host, port)  # first: a port in use fails before minutes of loading
     try:
-        args = dict(gan=gan, vae=vae, model=model, int8=int8, device=device, text_encoder_path=text_encoder_path,
-                    text_cache=text_cache)
-        # the engine's own process needs POSIX pipes handed to a child (pass_fds); elsewhere it runs in this one
-        engine = EngineProcess(**args) if os.name == "posix" else load_engine(**args)
+        engines = start_engines(dict(gan=gan, vae=vae, model=model, int8=int8, device=device,
+                                     text_encoder_path=text_encoder_path, text_cache=text_cache), workers)
     except BaseException:
         sock.close()
         raise
     try:
-        limits = (limits or Limits()).checked(engine.max_frames)
-        _run(engine, limits, sock, host, api_key, say)
+        limits = (limits or Limits()).checked(engines[0].max_frames)
+        _run(engines, limits, sock, host, api_key, say)
     finally:
-        engine.close()
+        for engine in engines:
+            engine.close()
         sock.close()
 
 
-def _run(engine: Engine, limits: Limits, sock: socket.socket, host: str, api_key: str | None,
+def start_engines(load_args: dict, workers: int | None = None) -> list[Engine]:
+    """``workers`` engine processes, loaded one after another (default: one per usable core, at most
+    :data:`MAX_WORKERS`, or only the first when it computes on a GPU). An ONNX engine's sessions get the cores
+    divided among the processes. Where a child cannot be handed its pipes (``pass_fds``: POSIX only), one engine
+    in this process."""
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers {workers}: at least one engine process is needed")
+    if os.name != "posix":
+        return [load_engine(**load_args)]
+    count = workers or min(usable_cpus(), MAX_WORKERS)
+    if load_args.get("model") and count > 1:
+        load_args = {**load_args, "threads": max(1, usable_cpus() // count)}
+    engines: list[Engine] = [EngineProcess(**load_args)]
+    try:
+        while len(engines) < count and (workers or engines[0].device == "cpu"):
+            engines.append(EngineProcess(**load_args))
+    except BaseException:
+        for engine in engines:
+            engine.close()
+        raise
+    return engines
+
+
+def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, api_key: str | None,
          say: Callable[[str], None]) -> None:
     """uvicorn on ``sock`` over ``engine`` until SIGTERM or Ctrl-C; the requests in flight finish first."""
     import uvicorn
@@ -93,14 +123,16 @@ def _run(engine: Engine, limits: Limits, sock: socket.socket, host: str, api_key
         say(f"warning: listening on {host}: other machines can reach this server"
             + ("" if api_key else " and use it without a key (--api-key)"))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(engine, limits, api_key=api_key), log_level="warning",
+    server = uvicorn.Server(uvicorn.Config(create_app(engines, limits, api_key=api_key), log_level="warning",
                                            access_log=False, timeout_graceful_shutdown=limits.timeout_s + 5,
                                            server_header=False))
     gc.collect()
     gc.freeze()  # the app's objects stay out of every later collection (the child does so for the models)
     sock.listen(2048)  # from here connections wait in the backlog until uvicorn accepts them
     url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
-    say(f"lsgan serve: {engine.describe()}, loaded in {engine.load_s:.1f} s; {url} (API /v1, docs {url}docs); "
+    processes = f"{len(engines)} engine processes" if len(engines) > 1 else "one engine process"
+    say(f"lsgan serve: {engines[0].describe()}, {processes}, loaded in {sum(e.load_s for e in engines):.1f} s; "
+        f"{url} (API /v1, docs {url}docs); "
         f"{'API key required' if api_key else 'no API key'}; Ctrl-C or SIGTERM stops")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     previous = signal.signal(signal.SIGTERM, lambda sig, frame: None)  # uvicorn re-raises it after draining

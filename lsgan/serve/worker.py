@@ -29,7 +29,7 @@ import numpy as np
 from lsgan.serve.engine import Engine, Item, Result
 
 _SIZES = struct.Struct("<II")  # header bytes, payload bytes
-_META = ("backend", "condition", "actions", "fps", "max_frames", "load_s")
+_META = ("backend", "device", "condition", "actions", "fps", "max_frames", "load_s")
 
 
 def send(stream: BinaryIO, header: dict, payload: bytes = b"") -> None:
@@ -108,9 +108,9 @@ class EngineProcess(Engine):
         for name in _META:
             setattr(self, name, header[name])
 
-    def run(self, items: list[Item]) -> list[Result]:
+    def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
         try:
-            send(self._out, {"items": [asdict(it) for it in items]})
+            send(self._out, {"items": [asdict(it) for it in items], "threads": threads})
             header, payload = receive(self._in)
         except (EOFError, BrokenPipeError):
             raise RuntimeError(f"the engine process stopped (exit code {self._proc.poll()})") from None
@@ -147,7 +147,7 @@ def _serve(requests: BinaryIO, replies: BinaryIO, load_args: dict) -> None:
         except EOFError:
             return
         try:
-            results = engine.run([Item(**it) for it in header["items"]])
+            results = engine.run([Item(**it) for it in header["items"]], threads=header.get("threads"))
         except Exception as e:  # noqa: BLE001 - the pass fails, the engine keeps serving
             send(replies, _failure(e))
             continue
