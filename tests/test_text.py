@@ -58,23 +58,6 @@ def test_minilm_batching_matches_one_by_one(minilm):
     torch.testing.assert_close(batched, single, rtol=0, atol=1e-5)
 
 
-def test_minilm_packed_batch_equals_padded(minilm):
-    """Captions of different lengths: running the per-token products on the real tokens only (the packed path
-    encode() takes) gives the padded layout's embeddings (the ONNX export's path) to float rounding."""
-    texts = CAPTIONS + ["hi", "a person walks forward, turns around twice and then waves with both hands high"]
-    enc = minilm.tokenizer.encode_batch(texts)
-    ids = torch.zeros(len(texts), max(len(e.ids) for e in enc), dtype=torch.long)
-    mask = torch.zeros(ids.shape, dtype=torch.bool)
-    for i, e in enumerate(enc):
-        ids[i, :len(e.ids)], mask[i, :len(e.ids)] = torch.tensor(e.ids), True
-    assert mask.float().mean() < 0.6  # a batch mostly of padding
-    with torch.inference_mode():
-        packed = minilm.model.sentence_embedding(ids, mask)
-        padded = minilm.model.sentence_embedding(ids, mask, pack=False)
-    torch.testing.assert_close(packed, padded, rtol=0, atol=1e-6)
-    torch.testing.assert_close(packed, minilm.encode(texts), rtol=0, atol=1e-6)
-
-
 @pytest.mark.slow  # importing sentence-transformers takes ~5 s
 def test_minilm_matches_sentence_transformers(minilm):
     st = pytest.importorskip("sentence_transformers")

@@ -53,7 +53,10 @@ class TextGraph(nn.Module):
         self.bert = encoder.model
 
     def forward(self, input_ids: torch.Tensor, attention_mask: torch.Tensor) -> torch.Tensor:
-        return self.bert.sentence_embedding(input_ids, attention_mask.bool(), pack=False)  # (B, D)
+        hidden = self.bert(input_ids, attention_mask.bool())  # (B, L, D)
+        m = attention_mask.unsqueeze(-1).to(hidden.dtype)  # (B, L, 1)
+        mean = (hidden * m).sum(1) / m.sum(1).clamp(min=1e-9)  # (B, D)
+        return nn.functional.normalize(mean, p=2, dim=1)
 
 
 class GeneratorGraph(nn.Module):

@@ -151,29 +151,6 @@ class _BertIntermediate(nn.Module):
         self.dense = nn.Linear(h, inner)
 
 
-class _Packing:
-    """The real tokens of a padded (n, t) batch, gathered into one (N, ...) block and scattered back.
-
-    Every per-token product (projections, feed-forward, layer norms) runs on the N real tokens only; attention
-    alone needs the padded layout. Serving batches of captions that differ by a few tokens carried ~20% padding.
-    """
-
-    def __init__(self, mask: torch.Tensor) -> None:
-        self.n, self.t = mask.shape
-        self.index = mask.reshape(-1).nonzero().squeeze(1)  # (N,) positions of real tokens in (n*t)
-        self.sentence = self.index // self.t  # (N,) the sentence each real token belongs to
-
-    def pack(self, x: torch.Tensor) -> torch.Tensor:
-        """(n, t, c) -> (N, c)."""
-        return x.reshape(self.n * self.t, -1)[self.index]
-
-    def pad(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, c) -> (n, t, c), zeros on padding."""
-        out = x.new_zeros(self.n * self.t, x.shape[-1])
-        out[self.index] = x
-        return out.view(self.n, self.t, -1)
-
-
 class _BertLayer(nn.Module):
     def __init__(self, cfg: dict) -> None:
         super().__init__()
@@ -183,19 +160,17 @@ class _BertLayer(nn.Module):
         self.intermediate = _BertIntermediate(h, cfg["intermediate_size"])
         self.output = _BertDenseNorm(cfg["intermediate_size"], h, eps)
 
-    def forward(self, x: torch.Tensor, bias: torch.Tensor, packing: _Packing | None = None) -> torch.Tensor:
-        """x (n, t, h), or (N, h) real tokens with ``packing``; bias (n, 1, 1, t) -> the same shape as x."""
+    def forward(self, x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        n, t, h = x.shape
         att = self.attention.self
-        h = x.shape[-1]
 
-        def heads(linear: nn.Linear) -> torch.Tensor:  # -> (n, heads, t, h / heads)
-            y = linear(x) if packing is None else packing.pad(linear(x))
-            return y.view(y.shape[0], y.shape[1], self.heads, h // self.heads).transpose(1, 2)
+        def split(y: torch.Tensor) -> torch.Tensor:
+            return y.view(n, t, self.heads, h // self.heads).transpose(1, 2)
 
-        ctx = nn.functional.scaled_dot_product_attention(heads(att.query), heads(att.key), heads(att.value),
-                                                         attn_mask=bias)
-        ctx = ctx.transpose(1, 2).reshape(ctx.shape[0], ctx.shape[2], h)  # (n, t, h)
-        x = self.attention.output(ctx if packing is None else packing.pack(ctx), x)
+        q, k, v = split(att.query(x)), split(att.key(x)), split(att.value(x))
+        ctx = nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=bias)
+        ctx = ctx.transpose(1, 2).reshape(n, t, h)
+        x = self.attention.output(ctx, x)
         return self.output(nn.functional.gelu(self.intermediate.dense(x)), x)
 
 
@@ -214,36 +189,12 @@ class _Bert(nn.Module):
         self.encoder = _BertEncoder(cfg)
 
     def forward(self, ids: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """ids, mask (n, t) -> the last hidden states (n, t, h) (padded positions hold values nothing reads)."""
-        x, bias = self.embeddings(ids), self._bias(mask)
+        bias = torch.zeros(mask.shape, dtype=torch.float32, device=mask.device)
+        bias = bias.masked_fill(~mask, torch.finfo(torch.float32).min)[:, None, None, :]
+        x = self.embeddings(ids)
         for layer in self.encoder.layer:
             x = layer(x, bias)
         return x
-
-    def sentence_embedding(self, ids: torch.Tensor, mask: torch.Tensor, *, pack: bool = True) -> torch.Tensor:
-        """ids, mask (n, t) -> (n, h): the mean of the real tokens' last hidden states, L2-normalised.
-
-        ``pack`` runs every per-token product on the real tokens only (:class:`_Packing`) when the batch has
-        padding; ``pack=False`` keeps the padded layout throughout (plain products for an ONNX export).
-        """
-        if not pack or bool(mask.all()):
-            hidden = self(ids, mask)  # (n, t, h)
-            m = mask.unsqueeze(-1).to(hidden.dtype)
-            mean = (hidden * m).sum(1) / m.sum(1).clamp(min=1e-9)
-        else:
-            packing, bias = _Packing(mask), self._bias(mask)
-            x = packing.pack(self.embeddings(ids))  # (N, h)
-            for layer in self.encoder.layer:
-                x = layer(x, bias, packing)
-            total = x.new_zeros(packing.n, x.shape[-1]).index_add_(0, packing.sentence, x)
-            mean = total / mask.sum(1, keepdim=True).to(x.dtype).clamp(min=1e-9)
-        return nn.functional.normalize(mean, p=2, dim=1)
-
-    @staticmethod
-    def _bias(mask: torch.Tensor) -> torch.Tensor:
-        """(n, t) True on real tokens -> (n, 1, 1, t) additive attention bias."""
-        bias = torch.zeros(mask.shape, dtype=torch.float32, device=mask.device)
-        return bias.masked_fill(~mask, torch.finfo(torch.float32).min)[:, None, None, :]
 
 
 def _minilm_dir() -> Path:
@@ -309,7 +260,11 @@ class MiniLMEncoder(TextEncoder):
         for i, e in enumerate(enc):
             ids[i, :len(e.ids)] = torch.tensor(e.ids)
             mask[i, :len(e.ids)] = True
-        return self.model.sentence_embedding(ids.to(self.device), mask.to(self.device))
+        ids, mask = ids.to(self.device), mask.to(self.device)
+        hidden = self.model(ids, mask)
+        m = mask.unsqueeze(-1).to(hidden.dtype)
+        mean = (hidden * m).sum(1) / m.sum(1).clamp(min=1e-9)
+        return nn.functional.normalize(mean, p=2, dim=1)
 
 
 def _load_minilm(path: str | os.PathLike | None) -> MiniLMEncoder:
