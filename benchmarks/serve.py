@@ -7,8 +7,8 @@ thread with a keep-alive connection that sends POST /v1/generate (a prompt from 
 random seed) as soon as its previous answer has arrived, for ``--seconds`` per level. Reported per level:
 requests/s, latency p50/p95/p99 (send to last byte), errors (anything but a 200, or a failed connection), the
 mean engine batch size, and the server's peak memory so far (VmHWM, its process and its engine processes added).
-Then ``engine.run`` of the same kind of
-request one at a time in this process, for as long. The 1-minute load average is printed at the start and the end.
+Then ``engine.run`` of the same kind of request one at a time in this process, for as long. The 1-minute load
+average is printed at the start and the end.
 
     python benchmarks/serve.py --gan runs/bandai-gan --vae runs/bandai-vae
     python benchmarks/serve.py --clients 1,8,32 --seconds 20 --json serve.json

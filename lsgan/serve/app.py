@@ -145,12 +145,12 @@ def info_of(engine: Engine, limits: Limits, auth: bool) -> dict:
     }
 
 
-def create_app(engines: Engine | list[Engine], limits: Limits, *, api_key: str | None = None) -> FastAPI:
+def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = None) -> FastAPI:
     """The API over one engine or several alike (passes side by side): the batcher and store start with the app
     and stop (draining) with it."""
     from contextlib import asynccontextmanager
 
-    engine = engines[0] if isinstance(engines, list) else engines  # what the API says of the model
+    engine = engines[0]  # what the API says of the model
     state: dict = {}
 
     @asynccontextmanager

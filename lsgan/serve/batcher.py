@@ -60,9 +60,9 @@ class Job:
 class Batcher:
     """A dispatcher thread that gathers queued jobs into passes, and a thread per engine that runs them."""
 
-    def __init__(self, engines: Engine | list[Engine], *, gather_ms: float = 1.0, max_batch: int = 16,
+    def __init__(self, engines: list[Engine], *, gather_ms: float = 1.0, max_batch: int = 16,
                  max_in_flight: int = 64, cores: int | None = None) -> None:
-        self.engines = engines if isinstance(engines, list) else [engines]
+        self.engines = engines
         self.gather_s, self.max_batch, self.max_in_flight = gather_ms / 1e3, max_batch, max_in_flight
         cores = cores or usable_cpus()
         self.share = max(1, cores // len(self.engines))  # threads of a pass beside others
@@ -75,7 +75,6 @@ class Batcher:
         self.in_flight = 0
         self.running = 0  # passes in progress
         self.computing = 0  # requests in them
-        self.passes = 0
         self.recent: deque[Pass] = deque(maxlen=1024)  # the last passes started
         self._threads = [threading.Thread(target=self._work, args=(i,), name=f"lsgan-engine-{i}", daemon=True)
                          for i in range(len(self.engines))]
@@ -152,7 +151,6 @@ class Batcher:
                 self.recent.append(Pass(index, threads, sum(j.item.num for j in jobs), self.running))
                 self.running += 1
                 self.computing += len(jobs)
-                self.passes += 1
             self._inboxes[index].put((jobs, threads))
         for inbox in self._inboxes:
             inbox.put(None)

@@ -114,7 +114,7 @@ def start_engines(load_args: dict, workers: int | None = None) -> list[Engine]:
 
 def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, api_key: str | None,
          say: Callable[[str], None]) -> None:
-    """uvicorn on ``sock`` over ``engine`` until SIGTERM or Ctrl-C; the requests in flight finish first."""
+    """uvicorn on ``sock`` over ``engines`` until SIGTERM or Ctrl-C; the requests in flight finish first."""
     import uvicorn
 
     from lsgan.serve.app import create_app
