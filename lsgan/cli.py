@@ -984,7 +984,7 @@ in flight and exits 0.
 @click.option("--device", default="auto", show_default=True, help="--gan/--vae: auto, cpu, cuda or cuda:N.")
 @click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder.")
 @click.option("--text-cache", default=1024, show_default=True, type=click.IntRange(0),
-              help="--gan/--vae: prompt embeddings kept across requests (0: none).")
+              help="Prompt embeddings kept across requests (0: none).")
 @click.option("--workers", type=click.IntRange(1),
               help="Engine processes, each with its own copy of the models, whose passes run side by side under "
                    "load (default: one per core, at most 4; one on a GPU).")

@@ -95,6 +95,21 @@ def test_text_encoder_graph_gives_minilms_embeddings(runs: Path, one_thread) -> 
         np.testing.assert_allclose(model.embed(batch), load_text_encoder("minilm").encode(batch).numpy(), atol=1e-5)
 
 
+def test_text_cache_embeds_each_prompt_once_and_gives_the_same_rows(runs: Path) -> None:
+    """``load(..., text_cache=N)`` (what lsgan serve --model uses): rows equal the uncached runtime's, a prompt
+    held is not embedded again, and the least recently used prompt is dropped first."""
+    plain, cached = load(runs / "gan-onnx", threads=1), load(runs / "gan-onnx", threads=1, text_cache=3)
+    batch = [PROMPTS[0], PROMPTS[1], PROMPTS[0]]
+    np.testing.assert_allclose(cached.embed(batch), plain.embed(batch), atol=1e-6, rtol=0)
+    assert (cached.text_cache.hits, cached.text_cache.misses) == (0, 2)
+    np.testing.assert_allclose(cached.embed(PROMPTS[:3]), plain.embed(PROMPTS[:3]), atol=1e-6, rtol=0)
+    assert (cached.text_cache.hits, cached.text_cache.misses) == (2, 3)
+    cached.embed([PROMPTS[3]])  # holds 3: PROMPTS[0], the least recently used, goes
+    cached.embed([PROMPTS[0]])
+    assert (cached.text_cache.hits, cached.text_cache.misses) == (2, 5)
+    assert cached.embed([]).shape == (0, 384)
+
+
 def test_action_gan_exports_and_matches_torch(runs: Path, one_thread) -> None:
     model = load(runs / "act-onnx", threads=1)
     names = model.manifest["action_names"]

@@ -87,7 +87,7 @@ class TorchEngine(Engine):
     def __init__(self, gan: str | os.PathLike, vae: str | os.PathLike, *, device: str = "auto",
                  text_encoder_path: str | None = None, batch_size: int = 256, text_cache: int = 1024) -> None:
         from lsgan.generate import load_models
-        from lsgan.serve.textcache import CachedTextEncoder
+        from lsgan.textcache import CachedTextEncoder
 
         self.loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path)
         if self.loaded.encoder is not None and text_cache > 0:
@@ -131,10 +131,10 @@ class OnnxEngine(Engine):
     backend = "onnx"
 
     def __init__(self, folder: str | os.PathLike, *, variant: str = "fp32", threads: int | None = None,
-                 batch_size: int = 256) -> None:
+                 batch_size: int = 256, text_cache: int = 1024) -> None:
         from lsgan.deploy.runtime import load
 
-        self.model = load(folder, variant=variant, threads=threads)
+        self.model = load(folder, variant=variant, threads=threads, text_cache=text_cache)
         self.condition = self.model.manifest["condition"]
         self.actions = list(self.model.manifest.get("action_names", [])) if self.condition == "action" else []
         self.max_frames = self.model.max_frames
@@ -154,13 +154,14 @@ class OnnxEngine(Engine):
 def load_engine(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
                 device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024,
                 threads: int | None = None) -> Engine:
-    """The torch engine (``gan`` and ``vae``; ``text_cache`` prompt embeddings kept) or the ONNX one (``model``;
-    ``threads`` per session, default the free cores), warmed up by one short pass."""
+    """The torch engine (``gan`` and ``vae``) or the ONNX one (``model``; ``threads`` per session, default the free
+    cores), keeping ``text_cache`` prompt embeddings, warmed up by one short pass."""
     t0 = time.perf_counter()
     if model is not None:
         if gan or vae or text_encoder_path:
             raise ValueError("give an exported folder (--model) or checkpoints (--gan and --vae), not both")
-        engine: Engine = OnnxEngine(model, variant="int8" if int8 else "fp32", threads=threads)
+        engine: Engine = OnnxEngine(model, variant="int8" if int8 else "fp32", threads=threads,
+                                    text_cache=text_cache)
     else:
         if not gan or not vae:
             raise ValueError("give --gan RUN and --vae RUN (or --model EXPORT_DIR)")
