@@ -141,7 +141,7 @@ def self_attention(attn: nn.MultiheadAttention, x: torch.Tensor, keep: torch.Ten
     heads = attn.num_heads
     qkv = F.linear(x, attn.in_proj_weight, attn.in_proj_bias).view(B, T, 3, heads, d // heads)
     q, k, v = qkv.permute(2, 0, 3, 1, 4)  # each (B,heads,T,d/heads)
-    bias = torch.zeros(B, 1, 1, T, dtype=x.dtype, device=x.device).masked_fill(~keep[:, None, None, :], float("-inf"))
+    bias = x.new_zeros(B, 1, 1, T).masked_fill(~keep[:, None, None, :], float("-inf"))  # 0 on real frames
     out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)  # (B,heads,T,d/heads)
     return attn.out_proj(out.transpose(1, 2).reshape(B, T, d))
 
