@@ -39,6 +39,7 @@ from lsgan import __version__, outputs
 from lsgan.data.skeleton import FPS
 from lsgan.deploy import int8 as q
 from lsgan.deploy.manifest import FORMAT, FORMAT_VERSION, MANIFEST, file_entry
+from lsgan.deploy.rewrite import gelu_in_fusable_order
 from lsgan.io import atomic_file, atomic_path, publish
 
 OPSET = 18  # the dynamo exporter's lowest
@@ -187,12 +188,14 @@ def export_graph(module: nn.Module, args: tuple, dynamic: dict, output: str, pat
     """Export ``module`` to ``path`` (atomically), its one output named ``output``; returns the graph's signature.
 
     Inputs are named after ``module.forward``'s arguments. The exporter names inner values after torch ops
-    (e.g. ``embedding``), so one that holds the output's name is renamed first.
+    (e.g. ``embedding``), so one that holds the output's name is renamed first. GELUs are written in the order
+    onnxruntime fuses (:mod:`lsgan.deploy.rewrite`: the same values).
     """
     with _exporting():
         program = torch.onnx.export(module.eval(), args, dynamo=True, dynamic_shapes=dynamic, opset_version=opset,
                                     optimize=True, verbose=False)
     graph = program.model.graph
+    gelu_in_fusable_order(graph)
     for node in graph:
         for value in node.outputs:
             if value.name == output and value is not graph.outputs[0]:

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from lsgan.models.attention import attend
 from lsgan.models.checkpoint import load_weights
 
 
@@ -129,7 +130,7 @@ def one_token_cross(attn: nn.MultiheadAttention, memory: torch.Tensor) -> torch.
 
 
 def self_attention(attn: nn.MultiheadAttention, x: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-    """``attn(x, x, x, key_padding_mask=~keep)`` (B,T,d) -> (B,T,d) in eval mode, by scaled_dot_product_attention.
+    """``attn(x, x, x, key_padding_mask=~keep)`` (B,T,d) -> (B,T,d) in eval mode, by :func:`attend`.
 
     torch's own inference path for a padding mask runs a masked softmax that took a third of the demo decoder's
     time on the CPU; the fused kernel gives the same values to float rounding (~1e-6) and exports to ONNX as
@@ -140,10 +141,8 @@ def self_attention(attn: nn.MultiheadAttention, x: torch.Tensor, keep: torch.Ten
     B, T, d = x.shape
     heads = attn.num_heads
     qkv = F.linear(x, attn.in_proj_weight, attn.in_proj_bias).view(B, T, 3, heads, d // heads)
-    q, k, v = qkv.permute(2, 0, 3, 1, 4)  # each (B,heads,T,d/heads)
     bias = x.new_zeros(B, 1, 1, T).masked_fill(~keep[:, None, None, :], float("-inf"))  # 0 on real frames
-    out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)  # (B,heads,T,d/heads)
-    return attn.out_proj(out.transpose(1, 2).reshape(B, T, d))
+    return attn.out_proj(attend(*qkv.unbind(2), bias))  # q, k, v (B,T,heads,d/heads) -> (B,T,d)
 
 
 def decoder_layer_one_token(layer: nn.TransformerDecoderLayer, h: torch.Tensor, memory: torch.Tensor,
