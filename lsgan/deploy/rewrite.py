@@ -44,9 +44,8 @@ def gelu_in_fusable_order(graph) -> int:
             continue
         c = [v for v in half.inputs if v is not add.outputs[0]]
         out = _only_consumer(half.outputs[0])
-        if len(c) != 1 or not _constant(c[0], 0.5) or out is None or out.op_type != "Mul" or x not in out.inputs:
-            continue
-        if [v for v in out.inputs if v is not half.outputs[0]] != [x]:
+        if len(c) != 1 or not _constant(c[0], 0.5) or out is None or out.op_type != "Mul" \
+                or [v for v in out.inputs if v is not half.outputs[0]] != [x]:
             continue
         half.replace_input_with(0, x)
         half.replace_input_with(1, add.outputs[0])  # x * (1 + erf)
