@@ -2,15 +2,19 @@
 
 One process tree, one run: every stage (a paper-sized VAE training step on 8 clips, a deep-wgan-gp GAN step at
 batch 64 with its five critic steps, VAE encoding of 64 windows (encode-latents' batch), generation end to end at
-batch 1 and 256) is timed with the machine otherwise idle, then beside 1 and then 3 competitor processes
-(pure-Python busy loops, children of this one).
+batch 1 and 256 in torch and in onnxruntime on the int8 export of the same paper-sized models) is timed with the
+machine otherwise idle, then beside 1 and then 3 competitor processes (pure-Python busy loops, children of this
+one).
 Each cell is the median of repeated runs (at least ``--min-reps`` and ``--min-seconds``) after a warm-up, which
 also gives lsgan's policy time to see the competitors.
 
 Policies: ``torch`` is what lsgan did before its thread policy (torch's default: one thread per core, for every
 workload); ``lsgan`` is :class:`lsgan.threads.ThreadPolicy` set up as the command behind the stage sets it up (a
 training run decides its count when it starts, beside the competitors already running, and keeps it; encoding
-tunes it and follows the load; generation follows the load), updated before each run. Printed per stage: idle ms,
+tunes it and follows the load; generation follows the load), updated before each run. For the onnxruntime stages
+``torch`` is the runtime's sessions before they followed the load (every core, fixed when the model was loaded on
+the idle machine, no spin-waiting) and ``lsgan`` its sessions now (the free cores pass by pass, spin-waiting up to
+``lsgan.deploy.runtime.SPIN_US``). Printed per stage: idle ms,
 slowdown beside 1 and 3 competitors per policy, and lsgan's idle time against torch's. Fair shares on 2 cores: x1.5 beside one competitor, x2.5 beside three.
 
     python benchmarks/contention.py                       # both policies, 0/1/3 competitors
@@ -25,18 +29,21 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from contextlib import contextmanager, nullcontext
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from lsgan.eval.bench import PAPER_GANS, PAPER_VAE, bench_prompts, gan_sampler, torch_pipeline
+from lsgan.eval.bench import PAPER_GANS, PAPER_VAE, bench_prompts, gan_sampler, save_paper_runs, torch_pipeline
 from lsgan.models.gan import GANConfig, LatentGAN, critic_loss_wgan_gp, g_loss_wgan
 from lsgan.models.text import load_text_encoder
 from lsgan.models.vae import MotionVAE
-from lsgan.threads import LARGE_BATCH, ThreadPolicy, run_threads
+from lsgan.threads import LARGE_BATCH, ThreadPolicy, run_threads, usable_cpus
 from lsgan.train.vae import mld_vae_loss
 
 FRAMES = 120
@@ -112,15 +119,48 @@ def generate(batch: int) -> Callable[[], None]:
     return run
 
 
+@lru_cache(maxsize=1)
+def _int8_export() -> tempfile.TemporaryDirectory:
+    """The paper-sized random-weight runs exported with ``--int8`` (once per process; removed at exit)."""
+    from lsgan.deploy.onnx_export import export_onnx
+
+    tmp = tempfile.TemporaryDirectory(prefix="lsgan-contention-")
+    gan_run, vae_run = save_paper_runs(Path(tmp.name))
+    export_onnx(gan_run, Path(tmp.name) / "onnx", vae=vae_run, int8=True)
+    return tmp
+
+
+def generate_onnx(batch: int) -> dict[str, Callable[[], int]]:
+    """The int8 export's text encoder -> generator -> decoder for ``batch`` prompts, per policy (see the module);
+    each run returns the intra-op threads it used."""
+    from lsgan.deploy.runtime import load
+    from lsgan.generation import Request
+
+    folder = Path(_int8_export().name) / "onnx"
+    models = {"torch": load(folder, variant="int8", threads=usable_cpus(), spin_us=0),
+              "lsgan": load(folder, variant="int8")}
+
+    def runner(model) -> Callable[[], int]:
+        def run() -> int:
+            model.generate([Request(text=t, frames=FRAMES) for t in bench_prompts(batch)])
+            return model.threads
+        return run
+
+    return {policy: runner(model) for policy, model in models.items()}
+
+
 # stage: (how lsgan sets its threads there, the setup). "train": the count decided when the run starts and kept
 # (lsgan.threads.run_threads); "tune": encode-latents' loop, tuned and re-decided as the load changes; "large" /
-# "small": generation of a batch of >= LARGE_BATCH motions or fewer.
+# "small": generation of a batch of >= LARGE_BATCH motions or fewer; "onnx": the
+# ONNX runtime's own sessions, one setup per policy.
 STAGES: dict[str, tuple[str, Callable[[], Callable[[], None]]]] = {
     "vae_step": ("train", vae_step),
     "gan_step": ("train", gan_step),
     "encode": ("tune", encode),
     "generate_b1": ("large" if 1 >= LARGE_BATCH else "small", lambda: generate(1)),
     "generate_b256": ("large" if 256 >= LARGE_BATCH else "small", lambda: generate(256)),
+    "onnx_int8_b1": ("onnx", lambda: generate_onnx(1)),
+    "onnx_int8_b256": ("onnx", lambda: generate_onnx(256)),
 }
 
 
@@ -145,12 +185,12 @@ def lsgan_policy(mode: str) -> ThreadPolicy:
     return ThreadPolicy(tune=mode == "tune", large=mode == "large")
 
 
-def measure(run: Callable[[], None], policy: str, mode: str, *, min_reps: int, min_seconds: float,
+def measure(run: Callable[[], int | None], policy: str, mode: str, *, min_reps: int, min_seconds: float,
             max_reps: int, max_seconds: float, warmup_seconds: float) -> tuple[list[float], set[int]]:
     """Times (ms) of ``run`` under ``policy`` after at least ``warmup_seconds`` of warm-up (at least 3 runs, and no
-    more once ``max_seconds`` have passed), and the thread counts used."""
+    more once ``max_seconds`` have passed), and the thread counts used (torch's, or what ``run`` returns)."""
     default = torch.get_num_threads()
-    ctx = lsgan_policy(mode) if policy == "lsgan" else nullcontext()
+    ctx = lsgan_policy(mode) if policy == "lsgan" and mode != "onnx" else nullcontext()
     times, threads = [], set()
     with ctx as pol:
         t_end = time.perf_counter() + warmup_seconds
@@ -166,10 +206,10 @@ def measure(run: Callable[[], None], policy: str, mode: str, *, min_reps: int, m
                 break
             if pol:
                 pol.update()
-            threads.add(torch.get_num_threads())
             t0 = time.perf_counter()
-            run()
+            used = run()
             times.append(1000.0 * (time.perf_counter() - t0))
+            threads.add(torch.get_num_threads() if used is None else used)
     torch.set_num_threads(default)
     return times, threads
 
@@ -188,7 +228,8 @@ def run_contention(stages: list[str], policies: list[str], counts: tuple[int, ..
                 pooled: dict[str, tuple[list[float], set[int]]] = {p: ([], set()) for p in policies}
                 for r in range(rounds):
                     for p in (policies if r % 2 == 0 else policies[::-1]):
-                        times, threads = measure(runs[name], p, STAGES[name][0], **timing)
+                        run = runs[name][p] if isinstance(runs[name], dict) else runs[name]
+                        times, threads = measure(run, p, STAGES[name][0], **timing)
                         pooled[p][0].extend(times)
                         pooled[p][1].update(threads)
                 for p in policies:

@@ -6,7 +6,8 @@ Both are exported as ``lsgan export-model`` exports them (``lsgan.deploy.onnx_ex
 feed-forward and self-attention products are quantised as ``--int8`` does (lsgan.deploy.int8), and MiniLM's
 feed-forward products for comparison, with both weight types (QInt8, QUInt8).
 Each figure is the median of ``--repeats`` timed runs after one warm-up, in ms per motion (decoder) or per prompt
-(text), at batch 1 and 256; onnxruntime with ``--threads`` intra-op threads, spin-waiting off and on (the decoder);
+(text), at batch 1 and 256; onnxruntime with ``--threads`` intra-op threads, the decoder without spin-waiting and with
+the runtime's (``SPIN_US``), the text encoder with the runtime's;
 torch eager with the same number of threads. The 1-minute load average is
 printed before and after: compare figures from quiet runs.
 
@@ -27,7 +28,7 @@ from torch.export import Dim
 
 from lsgan.deploy import int8 as q
 from lsgan.deploy.onnx_export import DecoderGraph, TextGraph, export_graph
-from lsgan.deploy.runtime import open_session, session_options
+from lsgan.deploy.runtime import SPIN_US, open_session, session_options
 from lsgan.eval.bench import PAPER_VAE
 from lsgan.models.text import load_text_encoder
 from lsgan.models.vae import MotionVAE
@@ -68,10 +69,10 @@ def decoder_rows(vae: MotionVAE, folder: Path, threads: int, repeats: int) -> li
             t = timed(lambda: vae.decode(torch.from_numpy(z), torch.from_numpy(mask)), repeats)
         rows.append({"model": "decoder", "runtime": "torch eager fp32", "batch": b, "ms": 1e3 * t / b})
         for variant in ("", ".QInt8", ".QUInt8"):
-            for spinning in (False, True):
-                s = open_session(folder / f"decoder{variant}.onnx", session_options(threads, spinning))
+            for spin_us in (0, SPIN_US):
+                s = open_session(folder / f"decoder{variant}.onnx", session_options(threads, spin_us))
                 t = timed(lambda: s.run(None, {"latent": z, "mask": mask}), repeats)
-                rows.append({"model": "decoder", "runtime": f"ORT {variant[1:] or 'fp32'}", "spinning": spinning,
+                rows.append({"model": "decoder", "runtime": f"ORT {variant[1:] or 'fp32'}", "spin_us": spin_us,
                              "batch": b, "ms": 1e3 * t / b})
     return rows
 
@@ -91,9 +92,9 @@ def text_rows(enc, folder: Path, threads: int, repeats: int) -> list[dict]:
             t = timed(lambda: graph(torch.from_numpy(ids), torch.from_numpy(att)), repeats)
         rows.append({"model": "text encoder", "runtime": "torch eager fp32", "batch": b, "ms": 1e3 * t / b})
         for variant in ("", ".QInt8", ".QUInt8"):
-            s = open_session(folder / f"text_encoder{variant}.onnx", session_options(threads, False))
+            s = open_session(folder / f"text_encoder{variant}.onnx", session_options(threads))
             t = timed(lambda: s.run(None, {"input_ids": ids, "attention_mask": att}), repeats)
-            rows.append({"model": "text encoder", "runtime": f"ORT {variant[1:] or 'fp32'}", "spinning": False,
+            rows.append({"model": "text encoder", "runtime": f"ORT {variant[1:] or 'fp32'}", "spin_us": SPIN_US,
                          "batch": b, "ms": 1e3 * t / b})
     return rows
 
@@ -112,10 +113,9 @@ def main() -> None:
         rows += text_rows(enc, Path(tmp), args.threads, args.repeats)
     print(f"load average (1 min): {before:.2f} before, {os.getloadavg()[0]:.2f} after; {args.threads} threads, "
           f"median of {args.repeats}")
-    print("| model | runtime | spinning | batch | ms per item |\n| --- | --- | --- | ---: | ---: |")
+    print("| model | runtime | spin-waiting, us | batch | ms per item |\n| --- | --- | ---: | ---: | ---: |")
     for r in rows:
-        spin = "" if "spinning" not in r else ("on" if r["spinning"] else "off")
-        print(f"| {r['model']} | {r['runtime']} | {spin} | {r['batch']} | {r['ms']:.2f} |")
+        print(f"| {r['model']} | {r['runtime']} | {r.get('spin_us', '')} | {r['batch']} | {r['ms']:.2f} |")
     if args.json:
         Path(args.json).write_text(json.dumps({"load_before": before, "threads": args.threads, "rows": rows}, indent=1))
 

@@ -29,13 +29,13 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from lsgan.eval.bench import PAPER_VAE, Pipeline, decoder_flops, gan_sampler, time_per_motion, torch_pipeline
+from lsgan.eval.bench import (PAPER_VAE, Pipeline, decoder_flops, gan_sampler, save_paper_runs, time_per_motion,
+                              torch_pipeline)
 from lsgan.models.gan import GANConfig, LatentGAN, critic_loss_wgan_gp, g_loss_wgan
 from lsgan.models.vae import MotionVAE
 from lsgan.threads import ThreadPolicy, threads_said
@@ -132,23 +132,6 @@ def floor_ms(precision: str, decoder_gflop: float, frames: int, peaks: dict[str,
         return 1000.0 * decoder_gflop / peaks[precision]
     i8 = int8_gflop(frames)
     return 1000.0 * (i8 / peaks["int8"] + (decoder_gflop - i8) / peaks["fp32"])
-
-
-def save_paper_runs(folder: Path) -> tuple[Path, Path]:
-    """The paper-sized VAE and a deep-wgan-gp on MiniLM's 384-d embeddings, random weights, saved as lsgan runs
-    (features and latents left unnormalised: mean 0, std 1)."""
-    from lsgan.models.checkpoint import save_checkpoint, weights_hash
-    from lsgan.models.text import load_text_encoder
-
-    torch.manual_seed(0)
-    vae_run, gan_run = folder / "vae", folder / "gan"
-    save_checkpoint(vae_run / "best", model=MotionVAE(PAPER_VAE), kind="vae", config={"model": asdict(PAPER_VAE)},
-                    step=0, extra={"mean": [0.0] * 263, "std": [1.0] * 263})
-    z = PAPER_GAN.latent_dim
-    save_checkpoint(gan_run / "best", model=LatentGAN(PAPER_GAN), kind="gan", config={"gan": asdict(PAPER_GAN)},
-                    step=0, extra={"latent_mean": [0.0] * z, "latent_std": [1.0] * z, "vae_hash": weights_hash(vae_run),
-                                   "text_encoder": load_text_encoder("minilm").id})
-    return gan_run, vae_run
 
 
 def _autocast_bf16(fn: Callable) -> Callable:

@@ -144,6 +144,30 @@ def threads_for(free_cores: float, cpus: int) -> int:
     return max(1, min(cpus, int(free_cores + 0.5)))
 
 
+class FreeCores:
+    """Threads for the cores other processes leave free, re-measured at most every ``interval`` seconds from what
+    they used (``/proc/stat``); between two measurements, the last one; before the first window has passed, the
+    tasks runnable right now. Torch-free: the ONNX runtime follows the load with it too."""
+
+    def __init__(self, interval: float = 0.5) -> None:
+        self.interval, self.cpus = interval, usable_cpus()
+        self._last = _sample()
+        self._free = 0
+
+    def threads(self) -> int | None:
+        """The count now, or None where the load cannot be read (no /proc)."""
+        if self._last is None:
+            return None
+        if time.monotonic() - self._last.wall >= self.interval and (now := _sample()) is not None:
+            others, self._last = others_load(self._last, now), now
+        elif self._free:
+            return self._free
+        else:  # too short a window to measure: count what is runnable right now
+            others = _running_others() or 0.0
+        self._free = threads_for(self.cpus - others, self.cpus)
+        return self._free
+
+
 class ThreadPolicy:
     """Sets torch's intra-op threads for a piece of work and keeps them right while it runs.
 
@@ -170,9 +194,8 @@ class ThreadPolicy:
         self.threads = 0
         self.chosen: dict[int, int] = {}  # level (free cores) -> the count its trial chose
         self._warmup, self._trials = warmup, trials
-        self._last = _sample()
+        self._free = FreeCores(interval)
         self._before = _torch().get_num_threads()
-        self._free = 0
         self._trial: list[int | None] = []  # the counts of the next steps of a running trial (None: not timed)
         self._level = 0  # the level the running trial is for
         self._tick: tuple[float, int | None] | None = None
@@ -184,18 +207,9 @@ class ThreadPolicy:
         return bool(self._trial) or self._tick is not None
 
     def free_threads(self) -> int:
-        """The level: threads for the cores other processes leave free, re-measured at most every ``interval``
-        seconds (torch's own count without /proc)."""
-        if self._last is None:
-            return self._before
-        if time.monotonic() - self._last.wall >= self.interval and (now := _sample()) is not None:
-            others, self._last = others_load(self._last, now), now
-        elif self._free:
-            return self._free
-        else:  # too short a window to measure: count what is runnable right now
-            others = _running_others() or 0.0
-        self._free = threads_for(self.cpus - others, self.cpus)
-        return self._free
+        """The level: :class:`FreeCores` (torch's own count without /proc)."""
+        n = self._free.threads()
+        return self._before if n is None else n
 
     def _next_trial_count(self) -> int | None:
         """Time the step that just ended; the count of the next step while a trial runs, else None (then the

@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +18,9 @@ import torch
 from cli_runs import lsgan, snapshot, tiny_pipeline
 
 from lsgan.deploy.int8 import joint_error_mm
-from lsgan.deploy.runtime import load
+from lsgan.deploy.runtime import SPIN_US, load, session_options
 from lsgan.generate import Request, generate
+from lsgan.threads import usable_cpus
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
@@ -148,7 +150,7 @@ def test_runtime_and_doc_snippet_run_without_torch(runs: Path, tmp_path: Path) -
         import numpy as np
         namespace = {{}}
         exec(compile({doc_snippet()!r}, "docs/deploy.md", "exec"), namespace)
-        from lsgan.deploy.runtime import load
+        from lsgan.deploy.runtime import SPIN_US, load, session_options
         from lsgan.generation import Request
         motions = load("gan-onnx").generate([Request(text="a person walks forward", frames=120)], seed=0).motions
         from lsgan.cli import main
@@ -195,6 +197,41 @@ def test_generate_runtime_onnx_is_deterministic(runs: Path, tmp_path: Path) -> N
     for name in files:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
     assert not np.array_equal(np.load(tmp_path / "a" / files[0]), np.load(tmp_path / "c" / files[0]))
+
+
+@pytest.mark.parametrize("threads, spin_us, spinning", [(1, SPIN_US, "0"), (2, SPIN_US, "1"), (2, 0, "0")])
+def test_only_a_pool_spin_waits_and_only_briefly(threads: int, spin_us: int, spinning: str) -> None:
+    opts = session_options(threads, spin_us)
+    assert opts.intra_op_num_threads == threads
+    assert opts.get_session_config_entry("session.intra_op.allow_spinning") == spinning
+    if spinning == "1":
+        assert opts.get_session_config_entry("session.intra_op.spin_duration_us") == str(SPIN_US)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or usable_cpus() < 2,
+                    reason="the load is read from /proc; one usable core never spin-waits")
+def test_sessions_stop_spinning_beside_busy_processes_with_the_same_motions(runs: Path, monkeypatch) -> None:
+    """Busy processes on every core after loading: the next pass (past the half-second window) runs in sessions
+    that sleep instead of spinning, on every core still, and makes the same bits as before; one thread never spins."""
+    monkeypatch.delenv("LSGAN_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    requests = [Request(text=p, frames=48) for p in PROMPTS[:3]]
+    model, single = load(runs / "gan-onnx", variant="int8"), load(runs / "gan-onnx", variant="int8", threads=1)
+    expected = model.generate(requests, num=2, seed=3).motions
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(usable_cpus())]
+    try:
+        time.sleep(0.8)
+        busy = model.generate(requests, num=2, seed=3)
+        alone = single.generate(requests, num=2, seed=3)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+    assert not model.spinning and False in model._sets
+    assert model.threads == busy.runtime["threads"] == usable_cpus()
+    assert not single.spinning and list(single._sets) == [False]
+    for a, b, c in zip(busy.motions, expected, alone.motions):
+        assert np.array_equal(a.features, b.features) and np.array_equal(c.features, b.features)
 
 
 def test_int8_error_is_recorded_and_reproduced(runs: Path) -> None:

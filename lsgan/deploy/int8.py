@@ -21,7 +21,6 @@ features), mean and max over every joint of every frame, in millimetres.
 """
 from __future__ import annotations
 
-import ast
 import logging
 import os
 import re

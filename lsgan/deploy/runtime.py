@@ -8,9 +8,15 @@ de-standardise (latent * std + mean), decoder (with a mask of the real frames), 
 the seed, so for the same seed the ONNX and torch runtimes make different motions; pass the same ``noise`` to
 compare them.
 
-Sessions use ``threads`` intra-op threads (default: ``LSGAN_THREADS`` or ``OMP_NUM_THREADS`` when set, else the
-cores other processes leave free when the model is loaded) and no spin-waiting: spinning threads collapse when the
-machine is busy with other work.
+Sessions run one intra-op thread per usable core (``threads=``, ``LSGAN_THREADS`` or ``OMP_NUM_THREADS`` fix
+another count), and their threads spin-wait between operations, for at most :data:`SPIN_US`, only while other
+processes leave every core free (:class:`lsgan.threads.FreeCores`, re-measured at most every half second): sleeping
+and waking at each of a pass's ~550 operations cost the paper-sized int8 decoder a quarter of its time at batch 1 on
+the idle machine, but spinning threads collapse beside a busy process (the decoder at batch 1 beside one busy loop:
+18.4 ms spinning, 11.4 sleeping). One set of sessions spins and one sleeps, each made when first needed (their
+outputs are the same bits, tested). Beside busy processes, all cores without spinning did as well as one thread at
+batch 1 (17.3 and 15.8 ms beside one, 29.8 and 32.2 beside three) and better at 256 motions (5.9 against 7.7 s
+beside three): ``benchmarks/contention.py``.
 """
 from __future__ import annotations
 
@@ -25,7 +31,7 @@ from lsgan.data.features import recover_from_ric
 from lsgan.deploy.manifest import GRAPHS, read_manifest, variant_files, verify
 from lsgan.generation import CPU_DECODE_FRAMES, Generation, Motion, Request, decode_batches
 from lsgan.textcache import PromptCache
-from lsgan.threads import fixed_threads, start_threads
+from lsgan.threads import FreeCores, fixed_threads, usable_cpus
 
 
 def _ort():
@@ -38,17 +44,27 @@ def _ort():
 
 def default_threads() -> int:
     """A count the user fixed (``LSGAN_THREADS``, what ``lsgan --threads N`` sets, else ``OMP_NUM_THREADS``), else
-    the cores other processes leave free now (:mod:`lsgan.threads`, shared with the torch runtime)."""
-    return fixed_threads() or start_threads()
+    every usable core."""
+    return fixed_threads() or usable_cpus()
 
 
-def session_options(threads: int | None = None, spinning: bool = False):
-    """onnxruntime options: ``threads`` intra-op threads (default: :func:`default_threads`), no spin-waiting
-    unless asked."""
+# How long a pool's idle threads spin before they sleep (onnxruntime >= 1.26; older ones ignore the key). The
+# paper-sized int8 decoder at batch 1, 2 threads, idle 2-core AMD EPYC: 9.0 ms sleeping, 6.9 spinning up to 50-200 us,
+# 7.0 spinning without a bound; the text encoder, generator and decoder in a row: 15.8 ms sleeping, 10.5 at 50 us,
+# 13.9 at 1,000 us and about twice 15.8 unbounded (each session's pool spins on through the next session's pass).
+SPIN_US = 50
+
+
+def session_options(threads: int | None = None, spin_us: int = SPIN_US):
+    """onnxruntime options: ``threads`` intra-op threads (default: :func:`default_threads`); with two or more, idle
+    threads spin-wait up to ``spin_us`` microseconds before they sleep (0: they sleep at once)."""
     opts = _ort().SessionOptions()
     opts.intra_op_num_threads = threads or default_threads()
     opts.inter_op_num_threads = 1
+    spinning = opts.intra_op_num_threads > 1 and spin_us > 0
     opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+    if spinning:
+        opts.add_session_config_entry("session.intra_op.spin_duration_us", str(int(spin_us)))
     opts.log_severity_level = 3  # errors only: its warnings about unused initialisers are noise here
     return opts
 
@@ -80,7 +96,7 @@ class OnnxMotionModel:
     """An exported folder with its sessions open: ``generate(requests)`` -> :class:`Generation`."""
 
     def __init__(self, folder: str | os.PathLike, manifest: dict, *, variant: str = "fp32",
-                 threads: int | None = None, spinning: bool = False, check_files: bool = True,
+                 threads: int | None = None, spin_us: int = SPIN_US, check_files: bool = True,
                  text_cache: int = 0) -> None:
         self.folder, self.manifest, self.variant = Path(folder), manifest, variant
         self.text_cache = PromptCache(text_cache) if text_cache > 0 else None  # prompt embeddings kept
@@ -89,13 +105,25 @@ class OnnxMotionModel:
         if check_files:
             used = [files[g] for g in GRAPHS if g in files] + ([tokenizer["file"]] if tokenizer else [])
             verify(self.folder, manifest, used)
+        self._files, self._spin_us = {g: self.folder / files[g] for g in GRAPHS if g in files}, spin_us
         self.threads = threads or default_threads()
-        opts = session_options(self.threads, spinning)
-        self.sessions = {g: open_session(self.folder / files[g], opts) for g in GRAPHS if g in files}
+        self._load = FreeCores() if self.threads > 1 and spin_us > 0 else None  # None: never spins
+        self.spinning = False  # whether the latest pass's sessions spin-wait
+        self._sets: dict[bool, dict] = {}  # spin-waiting or not -> the sessions
+        self._sessions()
         self.tokenizer = _tokenizer(self.folder, tokenizer) if manifest["condition"] == "text" else None
         f32 = lambda key: np.asarray(manifest[key], np.float32)  # noqa: E731
         self.latent_mean, self.latent_std = f32("latent_mean"), f32("latent_std")  # (Z,)
         self.feature_mean, self.feature_std = f32("feature_mean"), f32("feature_std")  # (263,)
+
+    def _sessions(self) -> dict:
+        """The sessions for a pass starting now: spinning ones while other processes leave every core free."""
+        self.spinning = self._load is not None and self._load.threads() in (None, self._load.cpus)
+        if self.spinning not in self._sets:
+            opts = session_options(self.threads, self._spin_us if self.spinning else 0)
+            self._sets[self.spinning] = {g: open_session(f, opts) for g, f in self._files.items()}
+        self.sessions = self._sets[self.spinning]
+        return self.sessions
 
     @property
     def max_frames(self) -> int:
@@ -115,7 +143,8 @@ class OnnxMotionModel:
             enc = self.tokenizer.encode_batch(unique[b:b + batch_size])
             ids = np.array([e.ids for e in enc], np.int64)  # (B, L)
             mask = np.array([e.attention_mask for e in enc], np.int64)  # (B, L)
-            rows.append(self.sessions["text_encoder"].run(["embedding"], {"input_ids": ids, "attention_mask": mask})[0])
+            feed = {"input_ids": ids, "attention_mask": mask}
+            rows.append(self._sessions()["text_encoder"].run(["embedding"], feed)[0])
         table = np.concatenate(rows) if rows else np.zeros((0, self.manifest["cond_dim"]), np.float32)
         index = {t: i for i, t in enumerate(unique)}
         return table[[index[t] for t in texts]]
@@ -135,7 +164,7 @@ class OnnxMotionModel:
 
     def latents(self, noise: np.ndarray, cond: np.ndarray, batch_size: int = 256) -> np.ndarray:
         """Latents (N, Z) in the VAE's space: the generator's standardised output * std + mean."""
-        run = self.sessions["generator"].run
+        run = self._sessions()["generator"].run
         z = [run(["latent"], {"noise": noise[b:b + batch_size], "condition": cond[b:b + batch_size]})[0]
              for b in range(0, len(noise), batch_size)]
         return np.concatenate(z) * self.latent_std + self.latent_mean
@@ -155,7 +184,7 @@ class OnnxMotionModel:
         for idx in decode_batches(frames, batch_size, CPU_DECODE_FRAMES):
             lengths = np.array([frames[i] for i in idx])
             mask = np.arange(lengths.max())[None] < lengths[:, None]  # (B, T)
-            x = self.sessions["decoder"].run(["features"], {"latent": z[idx], "mask": mask})[0]  # (B, T, 263)
+            x = self._sessions()["decoder"].run(["features"], {"latent": z[idx], "mask": mask})[0]  # (B, T, 263)
             for j, i in enumerate(idx):
                 out[i] = x[j, :frames[i]] * self.feature_std + self.feature_mean
         return out
@@ -210,11 +239,13 @@ def _tokenizer(folder: Path, settings: dict):
     return tok
 
 
-def load(folder: str | os.PathLike, *, variant: str = "fp32", threads: int | None = None,
-         spinning: bool = False, text_cache: int = 0) -> OnnxMotionModel:
+def load(folder: str | os.PathLike, *, variant: str = "fp32", threads: int | None = None, spin_us: int = SPIN_US,
+         text_cache: int = 0) -> OnnxMotionModel:
     """Open an exported folder (checked: format version, the SHA-256 of every file this variant uses);
-    ``text_cache``: prompt embeddings kept across calls (0: none)."""
-    return OnnxMotionModel(folder, read_manifest(folder), variant=variant, threads=threads, spinning=spinning,
+    ``threads``: intra-op threads (default: :func:`default_threads`); ``spin_us``: how long idle threads
+    spin-wait while the machine is otherwise idle (0: never); ``text_cache``: prompt embeddings kept across calls (0:
+    none)."""
+    return OnnxMotionModel(folder, read_manifest(folder), variant=variant, threads=threads, spin_us=spin_us,
                            text_cache=text_cache)
 
 

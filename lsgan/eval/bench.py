@@ -124,6 +124,24 @@ def count_flops(fn: Callable[[], object]) -> int:
     return int(counter.get_total_flops())
 
 
+def save_paper_runs(folder: Path, arch: str = "deep-wgan-gp") -> tuple[Path, Path]:
+    """The paper-sized VAE and a GAN on MiniLM's 384-d embeddings, random weights, saved as lsgan runs in ``folder``
+    (features and latents left unnormalised: mean 0, std 1): what the benchmarks export and time. -> (gan, vae)."""
+    from lsgan.models.checkpoint import save_checkpoint, weights_hash
+    from lsgan.models.text import load_text_encoder
+
+    torch.manual_seed(0)
+    vae_run, gan_run = folder / "vae", folder / "gan"
+    save_checkpoint(vae_run / "best", model=MotionVAE(PAPER_VAE), kind="vae", config={"model": asdict(PAPER_VAE)},
+                    step=0, extra={"mean": [0.0] * 263, "std": [1.0] * 263})
+    config = GANConfig(arch=arch, **{**PAPER_GAN, "cond_dim": 384})
+    z = config.latent_dim
+    save_checkpoint(gan_run / "best", model=LatentGAN(config), kind="gan", config={"gan": asdict(config)},
+                    step=0, extra={"latent_mean": [0.0] * z, "latent_std": [1.0] * z, "vae_hash": weights_hash(vae_run),
+                                   "text_encoder": load_text_encoder("minilm").id})
+    return gan_run, vae_run
+
+
 def gan_sampler(arch: str, gan: LatentGAN | None = None, cond_dim: int = PAPER_COND_DIM,
                 text_encoder: str = PAPER_TEXT_ENCODER) -> Sampler:
     """The generator of a GAN (paper-sized, random weights, when ``gan`` is None)."""
