@@ -13,8 +13,8 @@ workload); ``lsgan`` is :class:`lsgan.threads.ThreadPolicy` set up as the comman
 training run decides its count when it starts, beside the competitors already running, and keeps it; encoding
 tunes it and follows the load; generation follows the load), updated before each run. For the onnxruntime stages
 ``torch`` is the runtime's sessions before they followed the load (every core, fixed when the model was loaded on
-the idle machine, no spin-waiting) and ``lsgan`` its sessions now (the free cores pass by pass, spin-waiting up to
-``lsgan.deploy.runtime.SPIN_US``). Printed per stage: idle ms,
+the idle machine, no spin-waiting) and ``lsgan`` its sessions now (every core, spin-waiting up to
+``lsgan.deploy.runtime.SPIN_US`` only while other processes leave every core free). Printed per stage: idle ms,
 slowdown beside 1 and 3 competitors per policy, and lsgan's idle time against torch's. Fair shares on 2 cores: x1.5 beside one competitor, x2.5 beside three.
 
     python benchmarks/contention.py                       # both policies, 0/1/3 competitors

@@ -34,13 +34,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lsgan.eval.bench import (PAPER_VAE, Pipeline, decoder_flops, gan_sampler, save_paper_runs, time_per_motion,
-                              torch_pipeline)
-from lsgan.models.gan import GANConfig, LatentGAN, critic_loss_wgan_gp, g_loss_wgan
+from lsgan.eval.bench import (PAPER_VAE, Pipeline, decoder_flops, gan_sampler, paper_gan, save_paper_runs,
+                              time_per_motion, torch_pipeline)
+from lsgan.models.gan import LatentGAN, critic_loss_wgan_gp, g_loss_wgan
 from lsgan.models.vae import MotionVAE
 from lsgan.threads import ThreadPolicy, threads_said
 
-PAPER_GAN = GANConfig(arch="deep-wgan-gp", noise_dim=100, latent_dim=256, cond="text", cond_dim=384)
+PAPER_GAN = paper_gan("deep-wgan-gp", cond_dim=384)
 
 
 def _sync(device: torch.device) -> None:

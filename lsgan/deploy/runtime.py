@@ -105,7 +105,8 @@ class OnnxMotionModel:
         if check_files:
             used = [files[g] for g in GRAPHS if g in files] + ([tokenizer["file"]] if tokenizer else [])
             verify(self.folder, manifest, used)
-        self._files, self._spin_us = {g: self.folder / files[g] for g in GRAPHS if g in files}, spin_us
+        self._files = {g: self.folder / files[g] for g in GRAPHS if g in files}
+        self._spin_us = spin_us
         self.threads = threads or default_threads()
         self._load = FreeCores() if self.threads > 1 and spin_us > 0 else None  # None: never spins
         self.spinning = False  # whether the latest pass's sessions spin-wait

@@ -124,6 +124,11 @@ def count_flops(fn: Callable[[], object]) -> int:
     return int(counter.get_total_flops())
 
 
+def paper_gan(arch: str, cond_dim: int = PAPER_COND_DIM) -> GANConfig:
+    """The paper's GAN ``arch`` for conditions of ``cond_dim`` (MiniLM's 384, CLIP's 768)."""
+    return GANConfig(arch=arch, **{**PAPER_GAN, "cond_dim": cond_dim})
+
+
 def save_paper_runs(folder: Path, arch: str = "deep-wgan-gp") -> tuple[Path, Path]:
     """The paper-sized VAE and a GAN on MiniLM's 384-d embeddings, random weights, saved as lsgan runs in ``folder``
     (features and latents left unnormalised: mean 0, std 1): what the benchmarks export and time. -> (gan, vae)."""
@@ -134,7 +139,7 @@ def save_paper_runs(folder: Path, arch: str = "deep-wgan-gp") -> tuple[Path, Pat
     vae_run, gan_run = folder / "vae", folder / "gan"
     save_checkpoint(vae_run / "best", model=MotionVAE(PAPER_VAE), kind="vae", config={"model": asdict(PAPER_VAE)},
                     step=0, extra={"mean": [0.0] * 263, "std": [1.0] * 263})
-    config = GANConfig(arch=arch, **{**PAPER_GAN, "cond_dim": 384})
+    config = paper_gan(arch, cond_dim=384)
     z = config.latent_dim
     save_checkpoint(gan_run / "best", model=LatentGAN(config), kind="gan", config={"gan": asdict(config)},
                     step=0, extra={"latent_mean": [0.0] * z, "latent_std": [1.0] * z, "vae_hash": weights_hash(vae_run),
@@ -145,7 +150,7 @@ def save_paper_runs(folder: Path, arch: str = "deep-wgan-gp") -> tuple[Path, Pat
 def gan_sampler(arch: str, gan: LatentGAN | None = None, cond_dim: int = PAPER_COND_DIM,
                 text_encoder: str = PAPER_TEXT_ENCODER) -> Sampler:
     """The generator of a GAN (paper-sized, random weights, when ``gan`` is None)."""
-    model = gan if gan is not None else LatentGAN(GANConfig(arch=arch, **{**PAPER_GAN, "cond_dim": cond_dim}))
+    model = gan if gan is not None else LatentGAN(paper_gan(arch, cond_dim))
     model.eval()
     noise_dim = model.config.noise_dim
 
