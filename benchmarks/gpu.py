@@ -159,8 +159,8 @@ def bench_generation(mode: str, batches: tuple[int, ...], repeats: dict[int, int
 # ------------------------------------------------------------------------------------------------ training
 
 
-def bench_vae_step(mode: str, steps: int, repeats: int, dev: torch.device) -> dict:
-    """One VAE training step as lsgan.train.vae takes it, batch 128 x 196 frames."""
+def bench_vae_step(mode: str, steps: int, repeats: int, dev: torch.device, frames: int = VAE_FRAMES) -> dict:
+    """One VAE training step as lsgan.train.vae takes it, batch 128 x ``frames`` frames."""
     from contextlib import nullcontext
 
     from lsgan.models.vae import MotionVAE, vae_loss
@@ -169,8 +169,8 @@ def bench_vae_step(mode: str, steps: int, repeats: int, dev: torch.device) -> di
     torch.manual_seed(0)
     vae = MotionVAE(paper_vae_config()).to(dev).train()
     opt = torch.optim.AdamW(vae.parameters(), lr=1e-4, weight_decay=0.0)
-    x = torch.randn(VAE_BATCH, VAE_FRAMES, 263, device=dev)
-    mask = torch.ones(VAE_BATCH, VAE_FRAMES, dtype=torch.bool, device=dev)
+    x = torch.randn(VAE_BATCH, frames, 263, device=dev)
+    mask = torch.ones(VAE_BATCH, frames, dtype=torch.bool, device=dev)
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if mode == "bf16" else nullcontext()
 
     def step() -> None:
@@ -183,9 +183,9 @@ def bench_vae_step(mode: str, steps: int, repeats: int, dev: torch.device) -> di
         opt.step()
 
     times = _time_steps(step, warmup=5, steps=steps, repeats=repeats)
-    out = {"what": "vae-step", "mode": mode, "batch": VAE_BATCH, "frames": VAE_FRAMES, "ms_per_step": _spread(times),
+    out = {"what": "vae-step", "mode": mode, "batch": VAE_BATCH, "frames": frames, "ms_per_step": _spread(times),
            "peak_gib": _peak_gib(), "parameters": sum(p.numel() for p in vae.parameters())}
-    print(f"  VAE step {mode}: {out['ms_per_step']['median']:.2f} ms, peak {out['peak_gib']:.2f} GiB",
+    print(f"  VAE step {mode}, {frames} frames: {out['ms_per_step']['median']:.2f} ms, peak {out['peak_gib']:.2f} GiB",
           file=sys.stderr, flush=True)
     del vae, opt, x
     return out
@@ -282,7 +282,7 @@ def tables(report: dict) -> str:
         lines.append(f"| {e['what']} | | failed: {e['error']} | | | | | |")
     lines += ["", "| training step | mode | batch | ms per step | steps/s | peak GiB |", "| --- | --- | ---: | ---: | ---: | ---: |"]
     for r in report["training"]:
-        what = ("VAE (paper-sized), 196 frames" if r["what"] == "vae-step"
+        what = (f"VAE (paper-sized), {r['frames']} frames" if r["what"] == "vae-step"
                 else f"deep-wgan-gp, {r['critic_steps']} critic + 1 generator update")
         lines.append(f"| {what} | {r['mode']} | {r['batch']} | {_fmt(r['ms_per_step'], 2)} | "
                      f"{1000.0 / r['ms_per_step']['median']:.1f} | {r['peak_gib']:.3f} |")
@@ -296,6 +296,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", default=",".join(MODES), help=f"generation modes, comma-separated (default: all of {MODES})")
     ap.add_argument("--repeats", type=int, default=30, help="timed repeats at batch 1 (batch 1024: a third, at least 5)")
     ap.add_argument("--train-repeats", type=int, default=7, help="timed runs of training steps")
+    ap.add_argument("--vae-frames", default=str(VAE_FRAMES),
+                    help="window lengths of the timed VAE steps, comma-separated (120: recipes/bandai-gpu.yaml)")
     args = ap.parse_args(argv)
     if not torch.cuda.is_available():
         print("no CUDA device: benchmarks/gpu.py measures the GPU path only; nothing measured "
@@ -318,8 +320,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  generation {mode} failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
                 torch._dynamo.reset()
     if args.only != "generation":
-        for mode in ("fp32", "bf16"):
-            report["training"].append(bench_vae_step(mode, 10, args.train_repeats, dev))
+        for frames in map(int, args.vae_frames.split(",")):
+            for mode in ("fp32", "bf16"):
+                report["training"].append(bench_vae_step(mode, 10, args.train_repeats, dev, frames))
         report["training"].append(bench_gan_step(20, args.train_repeats, dev))
     text = tables(report)
     print(text)

@@ -99,3 +99,73 @@ def test_sampler_shards_across_ranks():
     a = {i for b in ranks[0] for i in b}
     b = {i for b in ranks[1] for i in b}
     assert not a & b and len(ranks[0]) == len(ranks[1])
+
+
+def _same_batch(a: dict, b: dict) -> None:
+    """Two batches hold the same windows bit for bit (padding as +0.0, not -0.0), captions and labels."""
+    assert a["motion"].shape == b["motion"].shape
+    assert torch.equal(a["motion"].view(torch.int32), b["motion"].view(torch.int32))
+    for key in ("length", "mask", "action"):
+        assert torch.equal(a[key].cpu(), b[key].cpu()), key
+    for key in ("caption", "tokens", "name"):
+        assert a[key] == b[key], key
+
+
+@pytest.fixture()
+def two_shards(shard_path, tmp_path):
+    """The shard of ``shard_path`` and a second one, so that clips of the second start after the first's rows."""
+    rng = np.random.default_rng(1)
+    clips = [ClipRecord(name=f"d{i}", features=rng.normal(-i, 2.0, (n, 263)).astype(np.float32), split="train",
+                        captions=[Caption(f"other {i} a"), Caption(f"other {i} b")], action="walk")
+             for i, n in enumerate([50, 210, 64])]
+    second = tmp_path / "t.h5"
+    write_shard(second, clips, source="test", action_names=["walk", "wave"], provenance={})
+    return [shard_path, second]
+
+
+def test_gathered_batches_are_the_loader_batches_bit_for_bit(two_shards):
+    """MotionDataset.gather from a FrameTable makes, under the same RNG state, the batch that collate makes of the
+    items: the same crops, lengths, caption draws and normalisation, over two shards."""
+    from lsgan.data.dataset import FrameTable
+
+    ds = MotionDataset(two_shards, "train", min_frames=16, max_frames=100)
+    table = FrameTable(ds)
+    assert table.data.shape == (sum(Shard(p).num_frames for p in two_shards) + 1, 263)
+    assert not table.data[-1].any()
+    batches = list(LengthBucketSampler(ds.lengths(), 3, seed=4)) * 3
+    torch.manual_seed(7)
+    items = [collate([ds[i] for i in b]) for b in batches]
+    torch.manual_seed(7)
+    gathered = [ds.gather(b, table) for b in batches]
+    for a, b in zip(items, gathered):
+        _same_batch(a, b)
+    assert len({tuple(b["caption"]) for b in gathered}) > 1 and any(b["mask"].logical_not().any() for b in gathered)
+    raw = MotionDataset(two_shards, "train", min_frames=16, max_frames=100, normalize=False)
+    with pytest.raises(ValueError, match="another normalisation"):
+        raw.gather(batches[0], table)
+
+
+def test_epoch_batches_from_a_frame_table_resume_where_the_loader_would(two_shards):
+    """EpochBatches over a FrameTable gives the loader's batches across epoch boundaries, and a copy loaded with
+    its state mid-epoch continues with the same batches."""
+    from lsgan.data.dataset import FrameTable
+    from lsgan.train.loop import EpochBatches
+
+    ds = MotionDataset(two_shards, "train", min_frames=16, max_frames=100)
+    sampler = LengthBucketSampler(ds.lengths(), 2, seed=1)
+    per_epoch = len(sampler)
+    loader, gathered = EpochBatches(ds, sampler, seed=1), EpochBatches(ds, sampler, seed=1, frames=FrameTable(ds))
+    torch.manual_seed(3)
+    want = [loader(s) for s in range(3 * per_epoch + 1)]
+    torch.manual_seed(3)
+    got = []
+    for s in range(per_epoch + 1):
+        got.append(gathered(s))
+    state, rng = gathered.state(), torch.get_rng_state()
+    assert state == {"epoch": 1, "batches_done": 1}
+    resumed = EpochBatches(ds, sampler, seed=1, frames=FrameTable(ds))
+    resumed.load(state)
+    torch.set_rng_state(rng)
+    got += [resumed(s) for s in range(per_epoch + 1, 3 * per_epoch + 1)]
+    for a, b in zip(want, got, strict=True):
+        _same_batch(a, b)

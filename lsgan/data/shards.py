@@ -373,6 +373,11 @@ class Shard:
                 self.features(i)
             raise
 
+    def all_features(self) -> np.ndarray:
+        """Every clip's frames, concatenated as stored: (num_frames, 263) float32."""
+        return np.asarray(self._features if isinstance(self._features, np.ndarray) else self._all_features(),
+                          dtype=np.float32)
+
     @property
     def provenance(self) -> dict:
         with reading(self.path, _SHARD):

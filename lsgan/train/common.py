@@ -18,7 +18,6 @@ import torch
 import torch.distributed as dist
 
 from lsgan import outputs
-from lsgan.faults import fault_point
 
 
 class TrainingDiverged(RuntimeError):
@@ -133,11 +132,7 @@ def closing_progress_bars(fn: Callable[..., R]) -> Callable[..., R]:
 
 
 def check_finite(losses: dict[str, float], step: int) -> None:
-    """Stop a run whose loss is NaN/inf, naming the loss and the step.
-
-    Every training loop calls this once per step, so it is also the fault tests' "a step ended" point.
-    """
-    fault_point("train.step")
+    """Stop a run whose loss is NaN/inf, naming the loss and the step."""
     for name, value in losses.items():
         if not math.isfinite(value):
             raise TrainingDiverged(f"{name} is {value} at step {step}; stopping (the last good checkpoint is kept)")

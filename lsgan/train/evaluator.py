@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from lsgan.data.dataset import LengthBucketSampler, MotionDataset
+from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
 from lsgan.eval.metrics import retrieval_metrics
@@ -283,7 +283,7 @@ def _text_trainer(env: Env, ds: MotionDataset, val: tuple[list, list, list], cfg
     return Trainer(
         kind="evaluator", desc="evaluator", model=net, config={"model": asdict(cfg), "train": asdict(tcfg)},
         optimizers={"optimizer": opt}, step=step, validate=validate, metric="loss",
-        batches=EpochBatches(ds, sampler, num_workers=tcfg.num_workers, seed=tcfg.seed, pin=dev.type == "cuda"),
+        batches=EpochBatches(ds, sampler, seed=tcfg.seed, frames=FrameTable(ds, dev)),
         extra=lambda p: {**extra, "val": p.val, "best_loss": p.best_value},
     )
 
@@ -414,6 +414,6 @@ def _action_trainer(env: Env, ds: ActionWindows, val_ds: ActionWindows | None, c
         kind="action-classifier", desc="action-classifier", model=net,
         config={"model": asdict(cfg), "train": asdict(tcfg)}, optimizers={"optimizer": opt}, step=step,
         validate=validate, metric="accuracy", higher_is_better=True,
-        batches=EpochBatches(ds, sampler, num_workers=tcfg.num_workers, seed=tcfg.seed, pin=dev.type == "cuda"),
+        batches=EpochBatches(ds, sampler, seed=tcfg.seed, num_workers=tcfg.num_workers, pin=dev.type == "cuda"),
         extra=lambda p: {"action_names": ds.action_names, "data": paths, "val": p.val, "best_accuracy": p.best_value},
     )

@@ -10,10 +10,13 @@ metric that picks ``best/``. The loop owns the rest:
   validation every ``val_every`` (``best/`` keeps the best score), ``last/`` every ``ckpt_every`` steps and at the
   end; ``best/`` is the last weights when no validation ever scored;
 - exact resume: ``last/state.pt`` holds the step, the optimisers, every process's RNG states, the batch source's
-  position and the validation record, so a resumed run repeats the uninterrupted one bit for bit (CPU,
-  num_workers=0); log rows written after that checkpoint are dropped;
+  position and the validation record, so a resumed run repeats the uninterrupted one bit for bit (on the CPU, with
+  its batches gathered from a FrameTable or read without loader workers); log rows written after that checkpoint
+  are dropped;
 - the NaN stop: a non-finite step scalar (every process sees the same ones) or non-finite weights at a checkpoint
-  raise TrainingDiverged, and the last good checkpoint stays;
+  raise TrainingDiverged, and the last good checkpoint stays; the step scalars are read back in one transfer at
+  each log, validation and checkpoint step (so a GPU is never kept waiting for a loss to be read), which is also
+  where a NaN is found, always before anything is written;
 - DDP (rank 0 alone writes), bf16 autocast on CUDA, log.csv and TensorBoard (RunLog), train.log, the progress bar;
 - the CPU threads: decided when the run starts (:func:`lsgan.threads.run_threads`: fewer when other processes keep
   cores busy) and kept, resumes included, so that its numbers never depend on the load.
@@ -39,7 +42,8 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
-from lsgan.data.dataset import LengthBucketSampler, collate
+from lsgan.data.dataset import FrameTable, LengthBucketSampler, collate
+from lsgan.faults import fault_point
 from lsgan.models.checkpoint import CONFIG, load_state, load_weights, save_checkpoint
 from lsgan.threads import ThreadPolicy, run_threads, threads_said
 from lsgan.train.common import (
@@ -155,11 +159,16 @@ class Batches(Protocol):
 class EpochBatches:
     """The sampler's batches of ``ds``, epoch after epoch; resumes at the saved (epoch, batches done).
 
-    Each epoch's loader has its own generator, so starting one (e.g. on resume) leaves the global RNG alone.
+    With ``frames`` (a :class:`~lsgan.data.dataset.FrameTable` of ``ds``) each batch is gathered from the table in
+    this process: the batches a loader without workers makes, bit for bit, at the cost of an index (no loader
+    processes restarted every epoch, nothing read from disk). Otherwise a DataLoader with ``num_workers`` reads
+    them; each epoch's loader has its own generator, so starting one (e.g. on resume) leaves the global RNG alone.
     """
 
-    def __init__(self, ds: Dataset, sampler: LengthBucketSampler, *, num_workers: int, seed: int, pin: bool) -> None:
-        self.ds, self.sampler, self.num_workers, self.seed, self.pin = ds, sampler, num_workers, seed, pin
+    def __init__(self, ds: Dataset, sampler: LengthBucketSampler, *, seed: int, frames: FrameTable | None = None,
+                 num_workers: int = 0, pin: bool = False) -> None:
+        self.ds, self.sampler, self.seed, self.frames = ds, sampler, seed, frames
+        self.num_workers, self.pin = num_workers, pin
         self.epoch, self.done = 0, 0
         self._batches: Iterator[tuple[int, int, dict]] | None = None
 
@@ -179,11 +188,14 @@ class EpochBatches:
         """(epoch, batches of that epoch done, batch) forever, starting ``skip`` batches into ``epoch``."""
         while True:
             self.sampler.set_epoch(epoch)
-            order = list(self.sampler)
-            g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
-            loader = DataLoader(self.ds, batch_sampler=order[skip:], collate_fn=collate, num_workers=self.num_workers,
-                                pin_memory=self.pin, generator=g)
-            for i, batch in enumerate(loader, start=skip + 1):
+            order = list(self.sampler)[skip:]
+            if self.frames is not None:
+                batches: Iterator[dict] = (self.ds.gather(b, self.frames) for b in order)
+            else:
+                g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
+                batches = iter(DataLoader(self.ds, batch_sampler=order, collate_fn=collate,
+                                          num_workers=self.num_workers, pin_memory=self.pin, generator=g))
+            for i, batch in enumerate(batches, start=skip + 1):
                 yield epoch, i, batch
             epoch, skip = epoch + 1, 0
 
@@ -232,7 +244,7 @@ class WindowTrainConfig:
     log_every: int = 50
     min_frames: int = 40
     max_frames: int = 196
-    num_workers: int = 0
+    num_workers: int = 0  # loader processes where a trainer reads through a DataLoader (windows of shards are gathered)
     seed: int = 0
 
     def schedule(self) -> Schedule:
@@ -255,7 +267,7 @@ class Trainer:
     extra: Callable[[Progress], dict]  # config.json's "extra"
     higher_is_better: bool = False
     val_prefix: str = "val_"  # a validation metric's column in log.csv: prefix + key
-    log_details: bool = True  # also log lr, sec_per_step, the epoch (EpochBatches) and the best score
+    log_details: bool = True  # also log lr, the epoch (EpochBatches) and the best score (sec_per_step: always)
     val_at_start: bool = False  # validate the untrained model too (logged at step 0, never best/)
     same_config: str | None = "model"  # the config section a resumed run must match (None: the run's own is used)
 
@@ -297,17 +309,22 @@ def fit(env: Env, t: Trainer, s: Schedule, previous: Previous | None = None, int
     bar = tqdm(total=s.max_steps, initial=p.step, disable=not (env.progress and env.is_main), file=sys.stderr,
                dynamic_ncols=True, desc=t.desc)
     sums: dict[str, float] = {}
+    pending: list[dict[str, Any]] = []  # step scalars not read back yet (on a GPU: tensors still being computed)
     count, seconds = 0, 0.0
     t.model.train()
     with ThreadPolicy(threads=_run_threads(env, p)):
+        tic = time.perf_counter()
         while p.step < s.max_steps:
-            tic = time.perf_counter()
-            scalars = _step(env, t, p.step)
+            pending.append(t.step(t.batches(p.step)))
+            fault_point("train.step")
             p.step, p.steps = p.step + 1, p.steps + 1
-            took = time.perf_counter() - tic
-            p.seconds, seconds, count = p.seconds + took, seconds + took, count + 1
-            sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
             bar.update(1)
+            if not any(s.due(p.step, every) for every in (s.log_every, s.val_every, s.ckpt_every)):
+                continue
+            for scalars in _read_back(env, pending, first=p.step - len(pending) + 1):
+                sums = {k: sums.get(k, 0.0) + v for k, v in scalars.items()}
+            took = time.perf_counter() - tic  # the steps since the last read-back, up to their results
+            count, seconds, p.seconds, pending = count + len(pending), seconds + took, p.seconds + took, []
             row: dict[str, float] = {}
             if s.due(p.step, s.log_every):
                 means = {k: v / count for k, v in sums.items()}
@@ -320,6 +337,7 @@ def fit(env: Env, t: Trainer, s: Schedule, previous: Previous | None = None, int
                 log.write(p.step, **row)
             if s.due(p.step, s.ckpt_every):
                 _checkpoint(env, t, p, "last", with_state=True)
+            tic = time.perf_counter()
     bar.close()
     log.close()
     if env.is_main and not (env.out / "best" / CONFIG).exists():  # nothing scored: the last weights stand in
@@ -342,21 +360,32 @@ def _run_threads(env: Env, p: Progress) -> int:
     return count
 
 
-def _step(env: Env, t: Trainer, step: int) -> dict[str, float]:
-    """One update; its scalars averaged over the processes, so that all of them stop together on a NaN."""
-    scalars = {k: v.item() if torch.is_tensor(v) else float(v) for k, v in t.step(t.batches(step)).items()}
+def _read_back(env: Env, pending: list[dict[str, Any]], first: int) -> list[dict[str, float]]:
+    """The scalars of the steps ``first``, ``first + 1``, ... as floats, each averaged over the processes, so that
+    all of them stop together on a NaN (TrainingDiverged names the first non-finite step).
+
+    Steps hand back tensors and the loop reads them here, every few steps, in one transfer: a GPU is never left
+    idle waiting for the host to read one step's loss before it queues the next step's work.
+    """
+    keys = list(pending[0])
+    cells = [step[k] for step in pending for k in keys]
+    tensors = [v.detach().to(env.device, torch.float64).reshape(()) for v in cells if torch.is_tensor(v)]
+    read = iter(torch.stack(tensors).cpu().tolist() if tensors else [])
+    values = [next(read) if torch.is_tensor(v) else float(v) for v in cells]
     if env.dist.enabled:
-        values = torch.tensor(list(scalars.values()), dtype=torch.float64, device=env.device)
-        dist.all_reduce(values)
-        scalars = dict(zip(scalars, (values / env.dist.world_size).tolist()))
-    check_finite(scalars, step + 1)
-    return scalars
+        summed = torch.tensor(values, dtype=torch.float64, device=env.device)
+        dist.all_reduce(summed)
+        values = (summed / env.dist.world_size).tolist()
+    rows = [dict(zip(keys, values[i * len(keys) : (i + 1) * len(keys)])) for i in range(len(pending))]
+    for i, scalars in enumerate(rows):
+        check_finite(scalars, first + i)
+    return rows
 
 
 def _train_row(t: Trainer, p: Progress, means: dict[str, float], sec_per_step: float) -> dict[str, float]:
     p.train_loss = means.get("loss", p.train_loss)
     if not t.log_details:
-        return means
+        return {**means, "sec_per_step": sec_per_step}
     lr = next(iter(t.optimizers.values())).param_groups[0]["lr"]
     return {**means, "lr": lr, "sec_per_step": sec_per_step, "epoch": t.batches.state()["epoch"]}
 

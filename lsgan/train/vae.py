@@ -10,7 +10,9 @@ Several: the same call under ``torchrun --nproc_per_node=N``; every process draw
 writes checkpoints and logs.
 
 Resuming reloads ``out/last/`` (weights, optimiser, step, RNG states, sampler epoch and position) and
-continues at the same step; with ``num_workers=0`` the continued run is the uninterrupted one, bit for bit.
+continues at the same step: the continued run is the uninterrupted one, bit for bit on the CPU. Windows are gathered
+from every frame of the shards held in memory (:class:`lsgan.data.dataset.FrameTable`; on a GPU, in its memory), in
+this process: ``num_workers`` is not used here.
 """
 from __future__ import annotations
 
@@ -22,9 +24,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import DataLoader
 
-from lsgan.data.dataset import LengthBucketSampler, MotionDataset, collate
+from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae, vae_loss
@@ -139,7 +140,7 @@ def _train(env: Env, paths: list[str], mcfg: VAEConfig, cfg: VAETrainConfig) -> 
     if not len(val_ds):
         env.say(f"no validation windows of {cfg.min_frames}+ frames: validation MPJPE will be NaN and best/ the last "
                 "checkpoint")
-    t = _trainer(env, train_ds, val_ds, mcfg, cfg, paths)
+    t = _trainer(env, train_ds, val_ds, FrameTable(train_ds, env.device), mcfg, cfg, paths)
     p = fit(env, t, cfg.schedule(), prev, intro=f"{len(train_ds)} training windows, {len(val_ds)} validation windows; "
             f"{sum(w.numel() for w in t.model.parameters()):,} parameters; device {env.device}, "
             f"{env.dist.world_size} process(es)")
@@ -147,9 +148,10 @@ def _train(env: Env, paths: list[str], mcfg: VAEConfig, cfg: VAETrainConfig) -> 
             "best_val_mpjpe_m": p.best_value}
 
 
-def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, mcfg: VAEConfig, cfg: VAETrainConfig,
-             paths: list[str]) -> Trainer:
-    """The VAE's step (forward, loss, backward, clipping, AdamW) and validation."""
+def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: FrameTable, mcfg: VAEConfig,
+             cfg: VAETrainConfig, paths: list[str]) -> Trainer:
+    """The VAE's step (forward, loss, backward, clipping, AdamW) and validation, both on windows gathered from
+    ``frames`` (the training and validation windows are of the same shards)."""
     dev, d = env.device, env.dist
     sampler = LengthBucketSampler(train_ds.lengths(), cfg.batch_size, seed=cfg.seed, num_replicas=d.world_size,
                                   rank=d.rank)
@@ -162,7 +164,7 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, mcfg: VAE
     net, amp = env.ddp(vae), env.autocast(cfg.amp)
 
     def step(batch: dict) -> dict[str, torch.Tensor]:
-        x, mask = batch["motion"].to(dev, non_blocking=True), batch["mask"].to(dev, non_blocking=True)
+        x, mask = batch["motion"], batch["mask"]  # (B,T,263), (B,T): gathered on the device
         with amp:
             x_hat, mu, logvar = net(x, mask)
         if cfg.loss == "mld":
@@ -179,14 +181,14 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, mcfg: VAE
     return Trainer(
         kind="vae", desc="vae", model=vae, config={"model": asdict(mcfg), "train": asdict(cfg)},
         optimizers={"optimizer": opt}, step=step, metric="mpjpe_m",
-        batches=EpochBatches(train_ds, sampler, num_workers=cfg.num_workers, seed=cfg.seed, pin=dev.type == "cuda"),
-        validate=_validation(env, vae, val_ds, cfg, mean, std),
+        batches=EpochBatches(train_ds, sampler, seed=cfg.seed, frames=frames),
+        validate=_validation(env, vae, val_ds, frames, cfg, mean, std),
         extra=lambda p: {**extra, "val_mpjpe_m": p.val.get("mpjpe_m"), "best_val_mpjpe_m": p.best_value},
     )
 
 
-def _validation(env: Env, vae: MotionVAE, val_ds: MotionDataset, cfg: VAETrainConfig, mean: torch.Tensor,
-                std: torch.Tensor) -> Callable[[], dict[str, float]]:
+def _validation(env: Env, vae: MotionVAE, val_ds: MotionDataset, frames: FrameTable, cfg: VAETrainConfig,
+                mean: torch.Tensor, std: torch.Tensor) -> Callable[[], dict[str, float]]:
     """Mean per-frame MPJPE (m) of mu-decoded validation windows, over all processes (a fixed subset of batches)."""
     dev, d, amp = env.device, env.dist, env.autocast(cfg.amp)
     order = list(LengthBucketSampler(val_ds.lengths(), cfg.batch_size, shuffle=False))
@@ -194,18 +196,17 @@ def _validation(env: Env, vae: MotionVAE, val_ds: MotionDataset, cfg: VAETrainCo
 
     def validate() -> dict[str, float]:
         vae.eval()
-        total, frames = 0.0, 0
+        total, count = 0.0, 0
         with torch.no_grad(), torch.random.fork_rng(devices=[dev] if dev.type == "cuda" else []):
             torch.manual_seed(cfg.seed)
-            loader = DataLoader(val_ds, batch_sampler=mine, collate_fn=collate, num_workers=cfg.num_workers,
-                                generator=torch.Generator().manual_seed(cfg.seed))
-            for batch in loader:
-                x, mask = batch["motion"].to(dev), batch["mask"].to(dev)
+            for indices in mine:
+                batch = val_ds.gather(indices, frames)
+                x, mask = batch["motion"], batch["mask"]
                 with amp:
                     x_hat = vae.decode(vae.encode(x, mask)[0], mask)
                 s, n = reconstruction_mpjpe(x_hat, x, mask, mean, std)
-                total, frames = total + s, frames + n
-        total, frames = all_reduce_mean(total, d, dev), all_reduce_mean(float(frames), d, dev)
-        return {"mpjpe_m": total / frames if frames else math.nan}
+                total, count = total + s, count + n
+        total, count = all_reduce_mean(total, d, dev), all_reduce_mean(float(count), d, dev)
+        return {"mpjpe_m": total / count if count else math.nan}
 
     return validate
