@@ -90,3 +90,49 @@ def test_check_finite_and_run_log(tmp_path):
     lines = (tmp_path / "log.csv").read_text().splitlines()
     assert lines[0] == "step,loss,val" and lines[2].startswith("2,0.4,1.0")
     json.dumps(lines)
+
+
+def _toy_trainer(nan_at: int):
+    """A real loop over a one-layer model whose step reports a NaN loss (a tensor, read back later) at step
+    ``nan_at`` (1-based), and plain floats beside it."""
+    from lsgan.train.loop import SeededSteps, Trainer
+
+    model = torch.nn.Linear(3, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    done = []
+
+    def step(g: torch.Generator) -> dict:
+        done.append(1)
+        loss = model(torch.randn(4, 3, generator=g)).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        bad = torch.tensor(float("nan")) if len(done) == nan_at else torch.tensor(0.0)
+        return {"loss": loss.detach() + bad, "steps_so_far": float(len(done))}
+
+    return Trainer(kind="toy", desc="toy", model=model, config={"model": {}}, optimizers={"opt": opt}, step=step,
+                   batches=SeededSteps(0, 0, torch.device("cpu")), validate=lambda: {}, metric="loss",
+                   extra=lambda p: {}, log_details=False), done
+
+
+def test_the_loop_reads_losses_back_in_windows_and_stops_at_the_first_nan(tmp_path):
+    """Step scalars are read back at log/checkpoint steps only: the window means are those of each step's values,
+    and a NaN in step 7 (read back at step 8) stops the run naming step 7, before step 8's checkpoint."""
+    from lsgan.train.common import Dist
+    from lsgan.train.loop import Env, Schedule, fit
+
+    env = Env("toy", tmp_path, torch.device("cpu"), Dist(), resume=False, progress=False)
+    t, _ = _toy_trainer(nan_at=0)
+    p = fit(env, t, Schedule(max_steps=8, log_every=4, val_every=100, ckpt_every=4))
+    rows = [line.split(",") for line in (tmp_path / "log.csv").read_text().splitlines()]
+    header = rows[0]
+    assert [r[0] for r in rows[1:]] == ["4", "8"] and "sec_per_step" in header
+    assert [float(r[header.index("steps_so_far")]) for r in rows[1:]] == [2.5, 6.5]  # means of 1..4 and 5..8
+    assert p.step == 8 and load_state(tmp_path / "last")["step"] == 8
+
+    out = tmp_path / "nan"
+    env = Env("toy", out, torch.device("cpu"), Dist(), resume=False, progress=False)
+    t, done = _toy_trainer(nan_at=7)
+    with pytest.raises(TrainingDiverged, match="loss is nan at step 7"):
+        fit(env, t, Schedule(max_steps=12, log_every=4, val_every=100, ckpt_every=4))
+    assert len(done) == 8 and load_state(out / "last")["step"] == 4
