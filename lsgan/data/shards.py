@@ -361,22 +361,20 @@ class Shard:
         self._features = f["features"]
         self._compressed = self._features.compression is not None
         if in_memory:
-            self._features = self._all_features()
+            self._features = self.all_features()
         self.attrs = dict(f.attrs)
 
-    def _all_features(self) -> np.ndarray:
-        """Every frame at once; a damaged chunk is reported with the first clip whose frames it holds."""
+    def all_features(self) -> np.ndarray:
+        """Every clip's frames, concatenated as stored: (num_frames, 263) float32, read at once (or the copy an
+        ``in_memory`` shard holds); a damaged chunk is reported with the first clip whose frames it holds."""
+        if isinstance(self._features, np.ndarray):
+            return self._features
         try:
             return self._features[()]
         except (OSError, RuntimeError):
             for i in range(len(self)):
                 self.features(i)
             raise
-
-    def all_features(self) -> np.ndarray:
-        """Every clip's frames, concatenated as stored: (num_frames, 263) float32."""
-        return np.asarray(self._features if isinstance(self._features, np.ndarray) else self._all_features(),
-                          dtype=np.float32)
 
     @property
     def provenance(self) -> dict:
