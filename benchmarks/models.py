@@ -11,7 +11,9 @@
    measured here with a 2048-cube matrix product in that precision on all cores; for int8, the feed-forward
    and self-attention products at the int8 rate and the rest at the fp32 rate, as ``--int8`` quantises them).
 3. With ``--quality-run GAN_RUN`` (a trained text GAN; its VAE from its cache or ``--quality-vae``): the joint
-   deviation of each fast runtime from torch fp32 on the same noise, mean and max mm over 100 motions.
+   deviation of each fast runtime from torch fp32 on the same noise, mean and max mm over 100 motions; and how far
+   the joints move when the prompt embeddings turn by 1e-4 to 1e-2 (the precision any faster text encoder must
+   keep: ``benchmarks/deploy.py`` prints how far the reduced-precision MiniLMs turn them).
 
 FLOPs per clip and the diffusion comparison are measured by ``lsgan bench``.
 
@@ -238,11 +240,43 @@ def joint_deviation(gan_run: Path, vae_run: Path | None, workdir: Path, count: i
     base = joints.pop("torch fp32 eager")
     out = {}
     for name, js in joints.items():
-        d = np.concatenate([np.linalg.norm(a - b, axis=-1).ravel() for a, b in zip(base, js)]) * 1000.0
+        d = _distances_mm(base, js)
         out[name] = {"mean_mm": float(d.mean()), "max_mm": float(d.max()), "motions": count}
         print(f"[quality] {name:22s} vs torch fp32: mean {d.mean():.3f} mm, max {d.max():.3f} mm over {count} "
               "motions", file=sys.stderr)
+    out["embedding_turns"] = embedding_sensitivity(load(folder, variant="fp32"), requests, noise)
     return out
+
+
+def _distances_mm(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate([np.linalg.norm(x - y, axis=-1).ravel() for x, y in zip(a, b)]) * 1000.0
+
+
+TURNS = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
+
+
+def embedding_sensitivity(model, requests: list, noise: np.ndarray) -> list[dict]:
+    """How far the joints move when the prompt embeddings turn by a distance ``d`` (a random direction per prompt,
+    re-normalised to the unit sphere, as MiniLM's embeddings are), same noise: the precision a faster text encoder
+    must keep. fp32 ONNX graphs of the trained GAN."""
+    from lsgan.data.features import recover_from_ric
+
+    frames = [r.frames for r in requests]
+
+    def joints(cond: np.ndarray) -> list[np.ndarray]:
+        return [recover_from_ric(f) for f in model.decode(model.latents(noise, cond), frames)]
+
+    cond = model.conditions(requests)
+    base, rng, rows = joints(cond), np.random.default_rng(0), []
+    for turn in TURNS:
+        step = rng.standard_normal(cond.shape).astype(np.float32)
+        moved = cond + turn * step / np.linalg.norm(step, axis=1, keepdims=True)
+        moved /= np.linalg.norm(moved, axis=1, keepdims=True)
+        d = _distances_mm(base, joints(moved))
+        rows.append({"turn": turn, "mean_mm": float(d.mean()), "max_mm": float(d.max()), "motions": len(requests)})
+        print(f"[quality] embeddings turned by {turn:.0e}: joints move by {d.mean():.2f} mm mean, {d.max():.1f} max",
+              file=sys.stderr)
+    return rows
 
 
 def main() -> None:
