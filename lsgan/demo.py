@@ -308,240 +308,282 @@ def run_demo(
 
 
 def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
+    """:func:`run_demo` with the thread count already set: check the folder, then each stage of :func:`_plan`."""
     import torch
+    from tqdm import tqdm
 
     from lsgan.threads import threads_said
-    from tqdm import tqdm
 
     settings = demo_settings(scale, recipe)
     out = Path(out)
     say = log or ((lambda msg: tqdm.write(msg, file=sys.stderr)) if progress else (lambda msg: None))
     _check_folder(out, settings, fresh)
-    stages = _Stages(out)
-    paths = {
-        "data": out / "data" / "synthetic.h5", "cache": out / "data" / "cache.h5", "vae": out / "runs" / "vae",
-        "gan": out / "runs" / "gan", "evaluator": out / "runs" / "evaluator", "metrics": out / "metrics",
-        "motions": out / "motions", "glb": out / "glb", "gif": out / "gif",
-    }
-    records: list[StageRecord] = []
     t_run = time.perf_counter()
     say(f"lsgan demo -> {out} (scale {settings.scale:g}: {settings.clips} synthetic clips, VAE {settings.vae_steps} / "
         f"GAN {settings.gan_steps} / evaluator {settings.evaluator_steps} steps; torch {torch.__version__}, "
         f"threads {threads_said()})")
+    run = _Run(out, settings, _load(settings.recipe), device, progress, say, _Stages(out))
+    for index, (name, output, describe, body) in enumerate(_plan(run), 1):
+        _stage(run, index, name, output, describe, body)
+    return _finish(run, t_run)
 
-    def stage(index: int, name: str, output: Path | str, describe: str, body: Callable[[], tuple[str, dict]]) -> dict:
-        done = stages.done(name)
-        if done is not None:
-            say(f"[{index}/{len(STAGES)}] {name}: done earlier ({done['seconds']:.1f} s), reusing {output}")
-            records.append(StageRecord(name, index, done["seconds"], "reused", str(output)))
-            return done
-        say(f"[{index}/{len(STAGES)}] {name}: {describe}")
-        t0 = time.perf_counter()
-        try:
-            status, info = body()
-        except KeyboardInterrupt as e:
-            for bar in list(getattr(tqdm, "_instances", ())):  # the stage's bars end before the message
-                bar.close()
-            raise DemoInterrupted(name, index, out) from e
-        seconds = time.perf_counter() - t0
-        marker = stages.finish(name, seconds, str(output), info)
-        note = f" ({info['note']})" if info.get("note") else ""
-        say(f"[{index}/{len(STAGES)}] {name}: {'resumed and ' if status == 'resumed' else ''}done in {seconds:.1f} s{note}")
-        records.append(StageRecord(name, index, marker["seconds"], status, str(output)))
-        return marker
 
-    r = _load(settings.recipe)
+@dataclass
+class _Run:
+    """What the stages of one run share: its folder, settings, recipe and device, and what it did so far."""
 
-    # 1. preprocess ------------------------------------------------------------------------------------------
-    def do_preprocess() -> tuple[str, dict]:
-        from lsgan.data.preprocess import preprocess
-        from lsgan.data.sources.synthetic import SyntheticSource
+    out: Path
+    settings: DemoSettings
+    recipe: dict
+    device: str
+    progress: bool
+    say: Callable[[str], None]
+    stages: _Stages
+    records: list[StageRecord] = field(default_factory=list)
 
-        bar = tqdm(total=settings.clips, unit="clip", desc="preprocess synthetic", file=sys.stderr,
-                   disable=not progress, dynamic_ncols=True)
+    def __post_init__(self) -> None:
+        o = self.out
+        self.paths = {
+            "data": o / "data" / "synthetic.h5", "cache": o / "data" / "cache.h5", "vae": o / "runs" / "vae",
+            "gan": o / "runs" / "gan", "evaluator": o / "runs" / "evaluator", "metrics": o / "metrics",
+            "motions": o / "motions", "glb": o / "glb", "gif": o / "gif",
+        }
 
-        def on_progress(done: int, total: int) -> None:
-            bar.total, bar.n = total, done
-            bar.refresh()
+    @property
+    def gan_name(self) -> str:
+        return _section2(self.recipe, "gan", "model").get("arch", "deep-wgan-gp")
 
-        parts = paths["data"].with_name(paths["data"].name + ".parts")
-        try:
-            res = preprocess(SyntheticSource(num_clips=settings.clips, seed=settings.seed), paths["data"],
-                             resume=parts.exists(), on_progress=on_progress)
-        finally:
+
+Body = Callable[[_Run], tuple[str, dict]]  # a stage's work: ("ran" | "resumed", what its marker records)
+
+
+def _plan(run: _Run) -> list[tuple[str, Path | str, str, Body]]:
+    """The eight stages in order (STAGES): name, output, what the log line says it does, and its work."""
+    s, p = run.settings, run.paths
+    vae_cfg = _section2(run.recipe, "vae", "model")
+    return [
+        ("preprocess", p["data"], f"{s.clips} procedural clips (walk, run, turns, jump, waves, raises, squat, kicks) "
+         "-> 263-d HumanML3D features", _preprocess),
+        ("train-vae", p["vae"], f"motion VAE ({vae_cfg.get('num_layers')} layers, d {vae_cfg.get('d_model')}), "
+         f"{s.vae_steps} steps", _train_vae),
+        ("encode-latents", p["cache"], "VAE latents of every window + MiniLM embeddings of every caption",
+         _encode_latents),
+        ("train-gan", p["gan"], f"{run.gan_name} on the cached latents, {s.gan_steps} generator steps", _train_gan),
+        ("train-evaluator", p["evaluator"], f"our text-motion evaluator (T2M's recipe, MiniLM text side), "
+         f"{s.evaluator_steps} steps", _train_evaluator),
+        ("evaluate", p["metrics"].with_suffix(".json"), f"T2M metrics, Real and {run.gan_name} rows ({s.reduced})",
+         _evaluate),
+        ("generate", p["motions"], f"{len(s.prompts)} prompts, {s.frames / 20:g} s each: "
+         + "; ".join(f'"{q}"' for q in s.prompts), _generate),
+        ("export", f"{p['glb']}/ {p['gif']}/", "an animated GLB (skeleton, one animation) and a GIF preview per "
+         "motion", _export),
+    ]
+
+
+def _stage(run: _Run, index: int, name: str, output: Path | str, describe: str, body: Body) -> dict:
+    """Reuse the stage if it is done on the current inputs, else run ``body`` and record its marker."""
+    from tqdm import tqdm
+
+    done = run.stages.done(name)
+    if done is not None:
+        run.say(f"[{index}/{len(STAGES)}] {name}: done earlier ({done['seconds']:.1f} s), reusing {output}")
+        run.records.append(StageRecord(name, index, done["seconds"], "reused", str(output)))
+        return done
+    run.say(f"[{index}/{len(STAGES)}] {name}: {describe}")
+    t0 = time.perf_counter()
+    try:
+        status, info = body(run)
+    except KeyboardInterrupt as e:
+        for bar in list(getattr(tqdm, "_instances", ())):  # the stage's bars end before the message
             bar.close()
-        return "ran", {"clips": res.clips, "frames": res.frames, "captions": res.captions,
-                       "note": f"{res.clips} clips, {res.frames:,} frames, {res.captions} captions"}
+        raise DemoInterrupted(name, index, run.out) from e
+    seconds = time.perf_counter() - t0
+    marker = run.stages.finish(name, seconds, str(output), info)
+    note = f" ({info['note']})" if info.get("note") else ""
+    run.say(f"[{index}/{len(STAGES)}] {name}: {'resumed and ' if status == 'resumed' else ''}done in {seconds:.1f} s"
+            f"{note}")
+    run.records.append(StageRecord(name, index, marker["seconds"], status, str(output)))
+    return marker
 
-    stage(1, "preprocess", paths["data"], f"{settings.clips} procedural clips (walk, run, turns, jump, waves, "
-          f"raises, squat, kicks) -> 263-d HumanML3D features", do_preprocess)
 
-    # 2. train-vae -------------------------------------------------------------------------------------------
-    def do_vae() -> tuple[str, dict]:
-        from lsgan.models.vae import VAEConfig
-        from lsgan.recipes import build, section
-        from lsgan.train.vae import VAETrainConfig, train_vae
+def _bar(run: _Run, total: int, unit: str, desc: str):
+    from tqdm import tqdm
 
-        v = section(r, "vae")
-        model = build(VAEConfig, section(v, "model"), "vae.model")
-        train = _scale_train(build(VAETrainConfig, section(v, "train"), "vae.train"), settings.vae_steps,
-                             ("val_every", "ckpt_every", "log_every"))
-        resume = _prepare_run_folder(paths["vae"], stages.inputs("train-vae"))
-        # the demo's own run folder: without a checkpoint to resume, a start's leftovers (logs) are cleared
-        res = train_vae(paths["data"], paths["vae"], model=model, train=train, device=device, resume=resume,
-                        force=not resume, progress=progress)
-        return ("resumed" if resume else "ran"), {
-            "steps": res["step"], "best_val_mpjpe_m": res["best_val_mpjpe_m"],
-            "note": f"validation MPJPE {res['best_val_mpjpe_m']:.3f} m" if res["best_val_mpjpe_m"] else ""}
+    return tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, disable=not run.progress, dynamic_ncols=True)
 
-    vae_cfg = _section2(r, "vae", "model")
-    stage(2, "train-vae", paths["vae"], f"motion VAE ({vae_cfg.get('num_layers')} layers, d {vae_cfg.get('d_model')}), "
-          f"{settings.vae_steps} steps", do_vae)
 
-    # 3. encode-latents --------------------------------------------------------------------------------------
-    def do_encode() -> tuple[str, dict]:
-        from lsgan.models.cache import encode_latents
-        from lsgan.models.checkpoint import read_meta
+def _preprocess(run: _Run) -> tuple[str, dict]:
+    from lsgan.data.preprocess import preprocess
+    from lsgan.data.sources.synthetic import SyntheticSource
 
-        t = read_meta(paths["vae"])["config"].get("train", {})
-        encode_latents(paths["data"], paths["vae"], paths["cache"], text_encoder=r.get("text_encoder") or "minilm",
-                       min_frames=t.get("min_frames", 40), max_frames=t.get("max_frames", 196), device=device,
-                       progress=progress)
-        return "ran", {}
+    s, data = run.settings, run.paths["data"]
+    bar = _bar(run, s.clips, "clip", "preprocess synthetic")
 
-    stage(3, "encode-latents", paths["cache"], "VAE latents of every window + MiniLM embeddings of every caption",
-          do_encode)
+    def on_progress(done: int, total: int) -> None:
+        bar.total, bar.n = total, done
+        bar.refresh()
 
-    # 4. train-gan -------------------------------------------------------------------------------------------
-    def do_gan() -> tuple[str, dict]:
-        from lsgan.models.checkpoint import weights_hash
-        from lsgan.models.gan import GANConfig
-        from lsgan.recipes import build, section
-        from lsgan.train.gan import GANTrainConfig, train_gan
+    parts = data.with_name(data.name + ".parts")
+    try:
+        res = preprocess(SyntheticSource(num_clips=s.clips, seed=s.seed), data, resume=parts.exists(),
+                         on_progress=on_progress)
+    finally:
+        bar.close()
+    return "ran", {"clips": res.clips, "frames": res.frames, "captions": res.captions,
+                   "note": f"{res.clips} clips, {res.frames:,} frames, {res.captions} captions"}
 
-        g = section(r, "gan")
-        gan = build(GANConfig, section(g, "model"), "gan.model")
-        train = _scale_train(build(GANTrainConfig, section(g, "train"), "gan.train"), settings.gan_steps,
-                             ("eval_every", "ckpt_every", "log_every"))
-        resume = _prepare_run_folder(paths["gan"], stages.inputs("train-gan"))
-        res = train_gan(paths["cache"], paths["gan"], gan=gan, train=train, device=device, resume=resume,
-                        force=not resume, progress=progress, expect_vae_hash=weights_hash(paths["vae"]))
-        fid = res["best_val_latent_fid"]
-        return ("resumed" if resume else "ran"), {
-            "steps": res["step"], "best_val_latent_fid": fid, "fid_history": res["fid_history"],
-            "note": (f"validation latent FID {res['fid_history'][0][1]:.1f} -> {fid:.2f}"
-                     if fid is not None and res["fid_history"] else "")}
 
-    stage(4, "train-gan", paths["gan"], f"{_section2(r, 'gan', 'model').get('arch', 'deep-wgan-gp')} on the cached "
-          f"latents, {settings.gan_steps} generator steps", do_gan)
+def _train_vae(run: _Run) -> tuple[str, dict]:
+    from lsgan.models.vae import VAEConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.vae import VAETrainConfig, train_vae
 
-    # 5. train-evaluator -------------------------------------------------------------------------------------
-    def do_evaluator() -> tuple[str, dict]:
-        from lsgan.models.evaluator import EvaluatorConfig
-        from lsgan.recipes import build, section
-        from lsgan.train.evaluator import EvaluatorTrainConfig, train_evaluator
+    v, p = section(run.recipe, "vae"), run.paths
+    model = build(VAEConfig, section(v, "model"), "vae.model")
+    train = _scale_train(build(VAETrainConfig, section(v, "train"), "vae.train"), run.settings.vae_steps,
+                         ("val_every", "ckpt_every", "log_every"))
+    resume = _prepare_run_folder(p["vae"], run.stages.inputs("train-vae"))
+    # the demo's own run folder: without a checkpoint to resume, a start's leftovers (logs) are cleared
+    res = train_vae(p["data"], p["vae"], model=model, train=train, device=run.device, resume=resume,
+                    force=not resume, progress=run.progress)
+    return ("resumed" if resume else "ran"), {
+        "steps": res["step"], "best_val_mpjpe_m": res["best_val_mpjpe_m"],
+        "note": f"validation MPJPE {res['best_val_mpjpe_m']:.3f} m" if res["best_val_mpjpe_m"] else ""}
 
-        e = section(section(r, "evaluator"), "text")
-        model = dict(section(e, "model"))
-        model.setdefault("text_encoder", r.get("text_encoder") or "minilm")
-        train = _scale_train(build(EvaluatorTrainConfig, section(e, "train"), "evaluator.text.train"),
-                             settings.evaluator_steps, ("val_every", "ckpt_every", "log_every"))
-        resume = _prepare_run_folder(paths["evaluator"], stages.inputs("train-evaluator"))
-        res = train_evaluator(paths["data"], paths["evaluator"], config=build(EvaluatorConfig, model, "evaluator.text.model"),
-                              train_config=train, device=device, resume=resume, force=not resume, progress=progress)
-        h = res["heldout"]
-        note = (f"held-out R-precision top-3 {h['r_precision_top3']:.3f} (chance {h['chance_top3']:.3f})"
-                if "r_precision_top3" in h else "")
-        return ("resumed" if resume else "ran"), {"steps": res["step"], "heldout": h, "note": note}
 
-    stage(5, "train-evaluator", paths["evaluator"], f"our text-motion evaluator (T2M's recipe, MiniLM text side), "
-          f"{settings.evaluator_steps} steps", do_evaluator)
+def _encode_latents(run: _Run) -> tuple[str, dict]:
+    from lsgan.models.cache import encode_latents
+    from lsgan.models.checkpoint import read_meta
 
-    # 6. evaluate --------------------------------------------------------------------------------------------
-    gan_name = _section2(r, "gan", "model").get("arch", "deep-wgan-gp")
+    p = run.paths
+    t = read_meta(p["vae"])["config"].get("train", {})
+    encode_latents(p["data"], p["vae"], p["cache"], text_encoder=run.recipe.get("text_encoder") or "minilm",
+                   min_frames=t.get("min_frames", 40), max_frames=t.get("max_frames", 196), device=run.device,
+                   progress=run.progress)
+    return "ran", {}
 
-    def do_evaluate() -> tuple[str, dict]:
-        from lsgan.eval.evaluate import evaluate_text_to_motion, write_table
 
-        e = _section2(r, "evaluator", "text", "train")
-        total = settings.replications
-        bar = tqdm(total=total, unit="replication", desc="evaluate", file=sys.stderr, disable=not progress,
-                   dynamic_ncols=True)
-        seen = [0]
+def _train_gan(run: _Run) -> tuple[str, dict]:
+    from lsgan.models.checkpoint import weights_hash
+    from lsgan.models.gan import GANConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.gan import GANTrainConfig, train_gan
 
-        def on_progress(msg: str) -> None:  # "replication r/R: name", before the model's draw is generated
-            bar.n = seen[0]
-            bar.refresh()
-            seen[0] += 1
+    g, p = section(run.recipe, "gan"), run.paths
+    gan = build(GANConfig, section(g, "model"), "gan.model")
+    train = _scale_train(build(GANTrainConfig, section(g, "train"), "gan.train"), run.settings.gan_steps,
+                         ("eval_every", "ckpt_every", "log_every"))
+    resume = _prepare_run_folder(p["gan"], run.stages.inputs("train-gan"))
+    res = train_gan(p["cache"], p["gan"], gan=gan, train=train, device=run.device, resume=resume,
+                    force=not resume, progress=run.progress, expect_vae_hash=weights_hash(p["vae"]))
+    fid = res["best_val_latent_fid"]
+    return ("resumed" if resume else "ran"), {
+        "steps": res["step"], "best_val_latent_fid": fid, "fid_history": res["fid_history"],
+        "note": (f"validation latent FID {res['fid_history'][0][1]:.1f} -> {fid:.2f}"
+                 if fid is not None and res["fid_history"] else "")}
 
-        try:
-            table = evaluate_text_to_motion(
-                {gan_name: paths["gan"]}, paths["vae"], paths["data"], paths["evaluator"], split="test",
-                replications=settings.replications, mm_captions=settings.mm_captions, mm_samples=settings.mm_samples,
-                min_frames=e.get("min_frames", 40), max_frames=e.get("max_frames", 196), seed=settings.seed,
-                device=device, progress=on_progress)
-            bar.n = total
-            bar.refresh()
-        finally:
-            bar.close()
-        table.info["reduced"] = settings.reduced
-        write_table(table, paths["metrics"], force=True)
-        top3 = table.summary()[gan_name]["r_precision_top3"][0]
-        return "ran", {"note": f"{gan_name} R-precision top-3 {top3:.3f} (chance 0.094)"}
 
-    stage(6, "evaluate", paths["metrics"].with_suffix(".json"), f"T2M metrics, Real and {gan_name} rows "
-          f"({settings.reduced})", do_evaluate)
+def _train_evaluator(run: _Run) -> tuple[str, dict]:
+    from lsgan.models.evaluator import EvaluatorConfig
+    from lsgan.recipes import build, section
+    from lsgan.train.evaluator import EvaluatorTrainConfig, train_evaluator
 
-    # 7. generate --------------------------------------------------------------------------------------------
-    def do_generate() -> tuple[str, dict]:
-        from lsgan.generate import Request, generate, write_generation
+    e, p = section(section(run.recipe, "evaluator"), "text"), run.paths
+    model = dict(section(e, "model"))
+    model.setdefault("text_encoder", run.recipe.get("text_encoder") or "minilm")
+    train = _scale_train(build(EvaluatorTrainConfig, section(e, "train"), "evaluator.text.train"),
+                         run.settings.evaluator_steps, ("val_every", "ckpt_every", "log_every"))
+    resume = _prepare_run_folder(p["evaluator"], run.stages.inputs("train-evaluator"))
+    res = train_evaluator(p["data"], p["evaluator"], config=build(EvaluatorConfig, model, "evaluator.text.model"),
+                          train_config=train, device=run.device, resume=resume, force=not resume,
+                          progress=run.progress)
+    h = res["heldout"]
+    note = (f"held-out R-precision top-3 {h['r_precision_top3']:.3f} (chance {h['chance_top3']:.3f})"
+            if "r_precision_top3" in h else "")
+    return ("resumed" if resume else "ran"), {"steps": res["step"], "heldout": h, "note": note}
 
-        requests = [Request(text=p, frames=settings.frames) for p in settings.prompts]
-        res = generate(paths["gan"], paths["vae"], requests, num=1, seed=settings.seed, device=device)
-        with atomic_folder(paths["motions"]) as tmp:
-            write_generation(res, tmp)
-        return "ran", {"ms_per_motion": res.ms_per_motion, "note": f"{res.ms_per_motion:.1f} ms per motion"}
 
-    stage(7, "generate", paths["motions"], f"{len(settings.prompts)} prompts, {settings.frames / 20:g} s each: "
-          + "; ".join(f'"{p}"' for p in settings.prompts), do_generate)
+def _evaluate(run: _Run) -> tuple[str, dict]:
+    from lsgan.eval.evaluate import evaluate_text_to_motion, write_table
 
-    # 8. export ----------------------------------------------------------------------------------------------
-    def do_export() -> tuple[str, dict]:
-        from lsgan.export.motions import export_motions
+    s, p, name = run.settings, run.paths, run.gan_name
+    e = _section2(run.recipe, "evaluator", "text", "train")
+    bar = _bar(run, s.replications, "replication", "evaluate")
+    seen = [0]
 
-        # Each format is built in a temporary folder and renamed whole; the titles come from the motions'
-        # manifest, which export_motions reads beside the source.
-        for fmt in ("glb", "gif"):
-            with atomic_folder(paths[fmt]) as tmp:
-                export_motions(paths["motions"], tmp, fmt=fmt, fps=20.0)
-        return "ran", {}
+    def on_progress(msg: str) -> None:  # "replication r/R: name", before the model's draw is generated
+        bar.n = seen[0]
+        bar.refresh()
+        seen[0] += 1
 
-    stage(8, "export", f"{paths['glb']}/ {paths['gif']}/", "an animated GLB (skeleton, one animation) and a GIF preview per motion", do_export)
+    try:
+        table = evaluate_text_to_motion(
+            {name: p["gan"]}, p["vae"], p["data"], p["evaluator"], split="test", replications=s.replications,
+            mm_captions=s.mm_captions, mm_samples=s.mm_samples, min_frames=e.get("min_frames", 40),
+            max_frames=e.get("max_frames", 196), seed=s.seed, device=run.device, progress=on_progress)
+        bar.n = s.replications
+        bar.refresh()
+    finally:
+        bar.close()
+    table.info["reduced"] = s.reduced
+    write_table(table, p["metrics"], force=True)
+    top3 = table.summary()[name]["r_precision_top3"][0]
+    return "ran", {"note": f"{name} R-precision top-3 {top3:.3f} (chance 0.094)"}
 
-    # summary ------------------------------------------------------------------------------------------------
-    metrics_json = paths["metrics"].with_suffix(".json")
+
+def _generate(run: _Run) -> tuple[str, dict]:
+    from lsgan.generate import Request, generate, write_generation
+
+    s, p = run.settings, run.paths
+    requests = [Request(text=q, frames=s.frames) for q in s.prompts]
+    res = generate(p["gan"], p["vae"], requests, num=1, seed=s.seed, device=run.device)
+    with atomic_folder(p["motions"]) as tmp:
+        write_generation(res, tmp)
+    return "ran", {"ms_per_motion": res.ms_per_motion, "note": f"{res.ms_per_motion:.1f} ms per motion"}
+
+
+def _export(run: _Run) -> tuple[str, dict]:
+    from lsgan.export.motions import export_motions
+
+    # Each format is built in a temporary folder and renamed whole; the titles come from the motions'
+    # manifest, which export_motions reads beside the source.
+    for fmt in ("glb", "gif"):
+        with atomic_folder(run.paths[fmt]) as tmp:
+            export_motions(run.paths["motions"], tmp, fmt=fmt, fps=20.0)
+    return "ran", {}
+
+
+def _finish(run: _Run, t_run: float) -> DemoResult:
+    """The result and ``OUT/summary.json``: paths, metrics, settings and stage timings."""
+    import torch
+
+    from lsgan.threads import threads_said
+
+    p, settings = run.paths, run.settings
+    metrics_json = p["metrics"].with_suffix(".json")
     saved = json.loads(metrics_json.read_text())
-    metrics = {r_: {c: {"mean": v["mean"], "ci95": v["ci95"]} for c, v in cols.items()} for r_, cols in saved["rows"].items()}
+    metrics = {r_: {c: {"mean": v["mean"], "ci95": v["ci95"]} for c, v in cols.items()}
+               for r_, cols in saved["rows"].items()}
     result = DemoResult(
-        out=out, settings=settings, data=paths["data"], cache=paths["cache"], vae=paths["vae"], gan=paths["gan"],
-        evaluator=paths["evaluator"], metrics_json=metrics_json, metrics_md=paths["metrics"].with_suffix(".md"),
-        motions=paths["motions"], glb=sorted(paths["glb"].glob("*.glb")), gif=sorted(paths["gif"].glob("*.gif")),
-        summary=out / "summary.json", metrics=metrics, table=paths["metrics"].with_suffix(".md").read_text().strip(),
-        stages=records,
-        seconds=time.perf_counter() - t_run,
+        out=run.out, settings=settings, data=p["data"], cache=p["cache"], vae=p["vae"], gan=p["gan"],
+        evaluator=p["evaluator"], metrics_json=metrics_json, metrics_md=p["metrics"].with_suffix(".md"),
+        motions=p["motions"], glb=sorted(p["glb"].glob("*.glb")), gif=sorted(p["gif"].glob("*.gif")),
+        summary=run.out / "summary.json", metrics=metrics, table=p["metrics"].with_suffix(".md").read_text().strip(),
+        stages=run.records, seconds=time.perf_counter() - t_run,
     )
+    paths = {"out": run.out, "data": result.data, "cache": result.cache, "vae": result.vae, "gan": result.gan,
+             "evaluator": result.evaluator, "metrics_json": result.metrics_json, "metrics_md": result.metrics_md,
+             "motions": result.motions}
     summary = {
         "lsgan_version": __version__,
         "settings": asdict(settings),
         "evaluation": settings.reduced,
-        "paths": {k: str(v) for k, v in {
-            "out": out, "data": result.data, "cache": result.cache, "vae": result.vae, "gan": result.gan,
-            "evaluator": result.evaluator, "metrics_json": result.metrics_json, "metrics_md": result.metrics_md,
-            "motions": result.motions}.items()} | {"glb": [str(p) for p in result.glb], "gif": [str(p) for p in result.gif]},
-        "gan_row": gan_name,
+        "paths": {k: str(v) for k, v in paths.items()} | {"glb": [str(f) for f in result.glb],
+                                                         "gif": [str(f) for f in result.gif]},
+        "gan_row": run.gan_name,
         "metrics": metrics,
-        "stages": [asdict(s) | {"info": (stages.marker(s.name) or {}).get("info", {})} for s in records],
-        "stages_seconds": round(sum(s.seconds for s in records), 2),
+        "stages": [asdict(s) | {"info": (run.stages.marker(s.name) or {}).get("info", {})} for s in run.records],
+        "stages_seconds": round(sum(s.seconds for s in run.records), 2),
         "this_run_seconds": round(result.seconds, 2),
         "platform": {"torch": torch.__version__, "threads": threads_said(), "cpus": os.cpu_count(),
                      "loadavg": _loadavg()},
@@ -549,9 +591,6 @@ def _run(out, *, scale, progress, log, device, fresh, recipe) -> DemoResult:
     with atomic_file(result.summary, "w", encoding="utf-8") as fh:
         json.dump(summary, fh, indent=1, default=str)
     return result
-
-
-# ------------------------------------------------------------------------------------------------ helpers
 
 
 def _load(recipe: str | os.PathLike) -> dict:
