@@ -90,101 +90,126 @@ def _read_bytes(path: str | Path) -> bytes:
 def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list[list[float]], list[tuple[str, ...]],
                                                      list[tuple[int, list[float]]]]:
     """Joint names, parents, offsets, channel lists and End Sites from the text between HIERARCHY and MOTION."""
-    names: list[str] = []
-    end_sites: list[tuple[int, list[float]]] = []
-    parents: list[int] = []
-    offsets: list[list[float]] = []
-    channels: list[tuple[str, ...]] = []
-    stack: list[int] = []  # joint index per open brace; -1 - k for End Site k
-    pending: int | None = None  # a joint or End Site declared, its '{' not yet read
-
-    def fail(problem: str, lineno: int) -> ClipError:
-        return ClipError(f"{path}: {problem} (hierarchy line {lineno})")
-
+    h = _Hierarchy(path)
     for lineno, line in enumerate(header.splitlines(), start=1):
-        tokens = _TOKEN.findall(line)
+        h.lineno, tokens = lineno, _TOKEN.findall(line)
         i = 0
         while i < len(tokens):
-            tok = tokens[i]
-            key = tok.upper()
-            if key in ("ROOT", "JOINT"):
-                rest = []
-                i += 1
-                while i < len(tokens) and tokens[i] != "{":
-                    rest.append(tokens[i])
-                    i += 1
-                if not rest:
-                    raise fail(f"{tok} without a name", lineno)
-                if key == "JOINT" and not stack:
-                    raise fail("JOINT outside any ROOT", lineno)
-                if stack and stack[-1] < 0:
-                    raise fail("JOINT inside an End Site", lineno)
-                names.append(" ".join(rest))
-                parents.append(stack[-1] if stack else -1)
-                offsets.append([0.0, 0.0, 0.0])
-                channels.append(())
-                pending = len(names) - 1
-                continue
-            if key == "END":
-                if i + 1 < len(tokens) and tokens[i + 1].upper() == "SITE":
-                    i += 1
-                if not stack:
-                    raise fail("End Site outside any joint", lineno)
-                if stack[-1] < 0:
-                    raise fail("End Site inside an End Site", lineno)
-                end_sites.append((stack[-1], [0.0, 0.0, 0.0]))
-                pending = -len(end_sites)
-            elif tok == "{":
-                if pending is None:
-                    raise fail("'{' without a ROOT, JOINT or End Site", lineno)
-                stack.append(pending)
-                pending = None
-            elif tok == "}":
-                if not stack:
-                    raise fail("unbalanced '}'", lineno)
-                stack.pop()
-            elif key == "OFFSET":
-                values = tokens[i + 1 : i + 4]
-                try:
-                    vec = [float(v) for v in values]
-                except ValueError:
-                    vec = []
-                if len(vec) != 3:
-                    raise fail(f"OFFSET needs 3 numbers, got {' '.join(values)!r}", lineno)
-                if not stack:
-                    raise fail("OFFSET outside any joint", lineno)
-                if stack[-1] >= 0:
-                    offsets[stack[-1]] = vec
-                else:
-                    end_sites[-1 - stack[-1]] = (end_sites[-1 - stack[-1]][0], vec)
-                i += 3
-            elif key == "CHANNELS":
-                if not stack or stack[-1] < 0:
-                    raise fail("CHANNELS outside a joint", lineno)
-                try:
-                    count = int(tokens[i + 1])
-                except (IndexError, ValueError):
-                    raise fail("CHANNELS without a count", lineno) from None
-                given = tokens[i + 2 : i + 2 + count]
-                if len(given) != count:
-                    raise fail(f"CHANNELS {count} lists {len(given)} names", lineno)
-                canon = []
-                for name in given:
-                    if name.lower() not in _CANONICAL:
-                        raise fail(f"unknown channel {name!r} of joint {names[stack[-1]]!r}", lineno)
-                    canon.append(_CANONICAL[name.lower()])
-                if len(set(canon)) != len(canon):
-                    raise fail(f"repeated channel in {' '.join(given)}", lineno)
-                channels[stack[-1]] = tuple(canon)
-                i += 1 + count
-            else:
-                raise fail(f"unexpected {tok!r}", lineno)
-            i += 1
-    if stack:
-        raise ClipError(f"{path}: hierarchy has {len(stack)} unclosed '{{'")
-    if not names:
+            i = h.read(tokens, i)
+    if h.stack:
+        raise ClipError(f"{path}: hierarchy has {len(h.stack)} unclosed '{{'")
+    if not h.names:
         raise ClipError(f"{path}: hierarchy declares no joints")
-    return names, parents, offsets, channels, end_sites
+    return h.names, h.parents, h.offsets, h.channels, h.end_sites
+
+
+class _Hierarchy:
+    """What a HIERARCHY section has declared so far, read one keyword at a time (one method per keyword)."""
+
+    def __init__(self, path: str) -> None:
+        self.path, self.lineno = path, 0
+        self.names: list[str] = []
+        self.parents: list[int] = []
+        self.offsets: list[list[float]] = []
+        self.channels: list[tuple[str, ...]] = []
+        self.end_sites: list[tuple[int, list[float]]] = []
+        self.stack: list[int] = []  # joint index per open brace; -1 - k for End Site k
+        self.pending: int | None = None  # a joint or End Site declared, its '{' not yet read
+
+    def fail(self, problem: str) -> ClipError:
+        return ClipError(f"{self.path}: {problem} (hierarchy line {self.lineno})")
+
+    def read(self, tokens: list[str], i: int) -> int:
+        """Read the keyword ``tokens[i]`` and what it takes; returns the index of the next keyword."""
+        tok = tokens[i]
+        key = tok.upper()
+        if key in ("ROOT", "JOINT"):
+            return self.joint(tok, tokens, i + 1)
+        if key == "END":
+            return self.end_site(tokens, i)
+        if tok == "{":
+            if self.pending is None:
+                raise self.fail("'{' without a ROOT, JOINT or End Site")
+            self.stack.append(self.pending)
+            self.pending = None
+            return i + 1
+        if tok == "}":
+            if not self.stack:
+                raise self.fail("unbalanced '}'")
+            self.stack.pop()
+            return i + 1
+        if key == "OFFSET":
+            return self.offset(tokens, i)
+        if key == "CHANNELS":
+            return self.channel_list(tokens, i)
+        raise self.fail(f"unexpected {tok!r}")
+
+    def joint(self, tok: str, tokens: list[str], i: int) -> int:
+        """``ROOT name`` or ``JOINT name`` (a name may hold spaces): up to its '{'."""
+        rest = []
+        while i < len(tokens) and tokens[i] != "{":
+            rest.append(tokens[i])
+            i += 1
+        if not rest:
+            raise self.fail(f"{tok} without a name")
+        if tok.upper() == "JOINT" and not self.stack:
+            raise self.fail("JOINT outside any ROOT")
+        if self.stack and self.stack[-1] < 0:
+            raise self.fail("JOINT inside an End Site")
+        self.names.append(" ".join(rest))
+        self.parents.append(self.stack[-1] if self.stack else -1)
+        self.offsets.append([0.0, 0.0, 0.0])
+        self.channels.append(())
+        self.pending = len(self.names) - 1
+        return i
+
+    def end_site(self, tokens: list[str], i: int) -> int:
+        if i + 1 < len(tokens) and tokens[i + 1].upper() == "SITE":
+            i += 1
+        if not self.stack:
+            raise self.fail("End Site outside any joint")
+        if self.stack[-1] < 0:
+            raise self.fail("End Site inside an End Site")
+        self.end_sites.append((self.stack[-1], [0.0, 0.0, 0.0]))
+        self.pending = -len(self.end_sites)
+        return i + 1
+
+    def offset(self, tokens: list[str], i: int) -> int:
+        values = tokens[i + 1 : i + 4]
+        try:
+            vec = [float(v) for v in values]
+        except ValueError:
+            vec = []
+        if len(vec) != 3:
+            raise self.fail(f"OFFSET needs 3 numbers, got {' '.join(values)!r}")
+        if not self.stack:
+            raise self.fail("OFFSET outside any joint")
+        top = self.stack[-1]
+        if top >= 0:
+            self.offsets[top] = vec
+        else:
+            self.end_sites[-1 - top] = (self.end_sites[-1 - top][0], vec)
+        return i + 4
+
+    def channel_list(self, tokens: list[str], i: int) -> int:
+        if not self.stack or self.stack[-1] < 0:
+            raise self.fail("CHANNELS outside a joint")
+        try:
+            count = int(tokens[i + 1])
+        except (IndexError, ValueError):
+            raise self.fail("CHANNELS without a count") from None
+        given = tokens[i + 2 : i + 2 + count]
+        if len(given) != count:
+            raise self.fail(f"CHANNELS {count} lists {len(given)} names")
+        canon = []
+        for name in given:
+            if name.lower() not in _CANONICAL:
+                raise self.fail(f"unknown channel {name!r} of joint {self.names[self.stack[-1]]!r}")
+            canon.append(_CANONICAL[name.lower()])
+        if len(set(canon)) != len(canon):
+            raise self.fail(f"repeated channel in {' '.join(given)}")
+        self.channels[self.stack[-1]] = tuple(canon)
+        return i + 2 + count
 
 
 def read_bvh(path: str | Path) -> Bvh:
