@@ -440,15 +440,25 @@ def _train_vae(run: _Run) -> tuple[str, dict]:
 
     v, p = section(run.recipe, "vae"), run.paths
     model = build(VAEConfig, section(v, "model"), "vae.model")
-    train = _scale_train(build(VAETrainConfig, section(v, "train"), "vae.train"), run.settings.vae_steps,
-                         ("val_every", "ckpt_every", "log_every"))
-    resume = _prepare_run_folder(p["vae"], run.stages.inputs("train-vae"))
+    train, resume = _training(run, "train-vae", "vae", v, VAETrainConfig, run.settings.vae_steps,
+                              ("val_every", "ckpt_every", "log_every"))
     # the demo's own run folder: without a checkpoint to resume, a start's leftovers (logs) are cleared
     res = train_vae(p["data"], p["vae"], model=model, train=train, device=run.device, resume=resume,
                     force=not resume, progress=run.progress)
     return ("resumed" if resume else "ran"), {
         "steps": res["step"], "best_val_mpjpe_m": res["best_val_mpjpe_m"],
         "note": f"validation MPJPE {res['best_val_mpjpe_m']:.3f} m" if res["best_val_mpjpe_m"] else ""}
+
+
+def _training(run: _Run, stage: str, folder: str, recipe: dict, train_cls, steps: int, intervals: tuple[str, ...],
+              label: str | None = None):
+    """A training stage's settings (the recipe section's ``train:`` scaled to ``steps``) and whether its run folder
+    holds a checkpoint to resume. The folder is the demo's own: one started on other inputs is cleared."""
+    from lsgan.recipes import build, section
+
+    name = label or folder
+    train = _scale_train(build(train_cls, section(recipe, "train"), f"{name}.train"), steps, intervals)
+    return train, _prepare_run_folder(run.paths[folder], run.stages.inputs(stage))
 
 
 def _encode_latents(run: _Run) -> tuple[str, dict]:
@@ -471,9 +481,8 @@ def _train_gan(run: _Run) -> tuple[str, dict]:
 
     g, p = section(run.recipe, "gan"), run.paths
     gan = build(GANConfig, section(g, "model"), "gan.model")
-    train = _scale_train(build(GANTrainConfig, section(g, "train"), "gan.train"), run.settings.gan_steps,
-                         ("eval_every", "ckpt_every", "log_every"))
-    resume = _prepare_run_folder(p["gan"], run.stages.inputs("train-gan"))
+    train, resume = _training(run, "train-gan", "gan", g, GANTrainConfig, run.settings.gan_steps,
+                              ("eval_every", "ckpt_every", "log_every"))
     res = train_gan(p["cache"], p["gan"], gan=gan, train=train, device=run.device, resume=resume,
                     force=not resume, progress=run.progress, expect_vae_hash=weights_hash(p["vae"]))
     fid = res["best_val_latent_fid"]
@@ -491,9 +500,9 @@ def _train_evaluator(run: _Run) -> tuple[str, dict]:
     e, p = section(section(run.recipe, "evaluator"), "text"), run.paths
     model = dict(section(e, "model"))
     model.setdefault("text_encoder", run.recipe.get("text_encoder") or "minilm")
-    train = _scale_train(build(EvaluatorTrainConfig, section(e, "train"), "evaluator.text.train"),
-                         run.settings.evaluator_steps, ("val_every", "ckpt_every", "log_every"))
-    resume = _prepare_run_folder(p["evaluator"], run.stages.inputs("train-evaluator"))
+    train, resume = _training(run, "train-evaluator", "evaluator", e, EvaluatorTrainConfig,
+                              run.settings.evaluator_steps, ("val_every", "ckpt_every", "log_every"),
+                              label="evaluator.text")
     res = train_evaluator(p["data"], p["evaluator"], config=build(EvaluatorConfig, model, "evaluator.text.model"),
                           train_config=train, device=run.device, resume=resume, force=not resume,
                           progress=run.progress)
