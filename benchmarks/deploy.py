@@ -88,11 +88,15 @@ def weight_only(src: Path, dst: Path, accuracy_level: int) -> None:
     import onnx
     from onnxruntime.quantization.matmul_nbits_quantizer import DefaultWeightOnlyQuantConfig, MatMulNBitsQuantizer
 
-    logging.getLogger().setLevel(logging.WARNING)  # the quantiser logs every node it skips
     config = DefaultWeightOnlyQuantConfig(block_size=32, is_symmetric=True, accuracy_level=accuracy_level, bits=8)
     quantiser = MatMulNBitsQuantizer(onnx.load(str(src)), bits=8, block_size=32, is_symmetric=True,
                                      accuracy_level=accuracy_level, algo_config=config)
-    quantiser.process()
+    level = logging.getLogger().level
+    logging.getLogger().setLevel(logging.WARNING)  # the quantiser logs every node it skips
+    try:
+        quantiser.process()
+    finally:
+        logging.getLogger().setLevel(level)
     quantiser.model.save_model_to_file(str(dst), False)
 
 

@@ -234,9 +234,9 @@ def joint_deviation(gan_run: Path, vae_run: Path | None, workdir: Path, count: i
     vae = vae_run or manifest["sources"]["vae"]["path"]
     joints = {name: [m.joints for m in run(gan_run, vae, requests, seed=0, device="cpu").motions]
               for name, run in (("torch fp32 eager", generate), ("torch bf16 autocast", _autocast_bf16(generate)))}
-    for variant in ("fp32", "int8"):
-        joints[f"onnxruntime {variant}"] = [m.joints for m in
-                                            load(folder, variant=variant).generate(requests, noise=noise).motions]
+    onnx = {variant: load(folder, variant=variant) for variant in ("fp32", "int8")}
+    for variant, model in onnx.items():
+        joints[f"onnxruntime {variant}"] = [m.joints for m in model.generate(requests, noise=noise).motions]
     base = joints.pop("torch fp32 eager")
     out = {}
     for name, js in joints.items():
@@ -244,7 +244,7 @@ def joint_deviation(gan_run: Path, vae_run: Path | None, workdir: Path, count: i
         out[name] = {"mean_mm": float(d.mean()), "max_mm": float(d.max()), "motions": count}
         print(f"[quality] {name:22s} vs torch fp32: mean {d.mean():.3f} mm, max {d.max():.3f} mm over {count} "
               "motions", file=sys.stderr)
-    out["embedding_turns"] = embedding_sensitivity(load(folder, variant="fp32"), requests, noise)
+    out["embedding_turns"] = embedding_sensitivity(onnx["fp32"], requests, noise)
     return out
 
 
