@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from lsgan.data.body_model import NUM_BETAS, BodyModel
 from lsgan.data.skeleton import NUM_JOINTS, PARENTS
-from lsgan.export.bvh import CHILDREN, kabsch, shortest_arc
+from lsgan.export.bvh import joint_rotations, shortest_arc
 from lsgan.io import atomic_file
 
 TWIST_RELAX = 0.03
@@ -78,27 +78,11 @@ def _continue_twist(swing: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 
 def ik_start(joints: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """Local rotations (T,22,3,3) posing the rest joints ``rest`` (>=22,3) like ``joints`` (stage 1)."""
-    j = np.asarray(joints, dtype=np.float64)
+    """Local rotations (T,22,3,3) posing the rest joints ``rest`` (>=22,3) like ``joints`` (stage 1): the BVH
+    export's IK, with each single-child joint's twist carried from frame to frame (:func:`_continue_twist`)."""
     offsets = np.zeros((NUM_JOINTS, 3))
     offsets[1:] = rest[1:NUM_JOINTS] - rest[list(PARENTS[1:])]
-    t = j.shape[0]
-    eye = np.broadcast_to(np.eye(3), (t, 3, 3))
-    global_rot = np.empty((t, NUM_JOINTS, 3, 3))
-    local_rot = np.empty((t, NUM_JOINTS, 3, 3))
-    for k in range(NUM_JOINTS):
-        parent_rot = eye if PARENTS[k] < 0 else global_rot[:, PARENTS[k]]
-        kids = list(CHILDREN[k])
-        if len(kids) > 1:
-            local = np.swapaxes(parent_rot, -1, -2) @ kabsch(offsets[kids], j[:, kids] - j[:, [k]])
-        elif kids:
-            seen = np.einsum("tji,tj->ti", parent_rot, j[:, kids[0]] - j[:, k])
-            local = _continue_twist(shortest_arc(offsets[kids[0]], seen), seen)
-        else:
-            local = eye
-        local_rot[:, k] = local
-        global_rot[:, k] = parent_rot @ local
-    return local_rot
+    return joint_rotations(joints, offsets, single_child=_continue_twist)
 
 
 def _torch_model(model: BodyModel, device: str):

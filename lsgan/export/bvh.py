@@ -98,8 +98,13 @@ def rest_offsets(joints: np.ndarray) -> np.ndarray:
     return offsets
 
 
-def joint_rotations(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Local rotations (T,22,3,3) that pose the rest skeleton ``offsets`` like ``joints`` (hierarchical FK)."""
+def joint_rotations(joints: np.ndarray, offsets: np.ndarray, single_child=None) -> np.ndarray:
+    """Local rotations (T,22,3,3) that pose the rest skeleton ``offsets`` like ``joints`` (hierarchical FK).
+
+    A joint with several children turns onto all of their bones at once (Kabsch); one with a single child turns its
+    rest bone onto the observed one by ``single_child(swing, seen)``: the swing (T,3,3), the shortest arc without
+    twist, and the observed bone in the parent's frame (T,3) give the rotation (default: the swing itself).
+    """
     j = np.asarray(joints, dtype=np.float64)
     t = j.shape[0]
     eye = np.broadcast_to(np.eye(3), (t, 3, 3))
@@ -109,11 +114,11 @@ def joint_rotations(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         parent_rot = eye if PARENTS[k] < 0 else global_rot[:, PARENTS[k]]
         kids = list(CHILDREN[k])
         if len(kids) > 1:
-            g = kabsch(offsets[kids], j[:, kids] - j[:, [k]])
-            local = np.swapaxes(parent_rot, -1, -2) @ g
+            local = np.swapaxes(parent_rot, -1, -2) @ kabsch(offsets[kids], j[:, kids] - j[:, [k]])
         elif kids:
             seen = np.einsum("tji,tj->ti", parent_rot, j[:, kids[0]] - j[:, k])
-            local = shortest_arc(offsets[kids[0]], seen)
+            swing = shortest_arc(offsets[kids[0]], seen)
+            local = swing if single_child is None else single_child(swing, seen)
         else:
             local = eye
         local_rot[:, k] = local
