@@ -198,7 +198,7 @@ class _Accumulator:
 
 
 def _write_tables(f: h5py.File, cols: dict[str, list], caps: dict[str, list], stats: tuple | None,
-                  acc: _Accumulator, *, source: str, action_names: list[str], provenance: dict) -> None:
+                  acc: _Accumulator | None, *, source: str, action_names: list[str], provenance: dict) -> None:
     """The clip and caption tables, the statistics, the provenance and the root attributes of a shard."""
     g = f.create_group("clips")
     for key in ("name", "split", "source_file", "mirror_of"):
@@ -225,6 +225,75 @@ def _write_tables(f: h5py.File, cols: dict[str, list], caps: dict[str, list], st
     )
 
 
+@contextmanager
+def hdf5_output(path: str | os.PathLike, **options) -> Iterator[h5py.File]:
+    """An HDF5 file (h5py ``options``) open for writing beside ``path``; it replaces ``path`` when the block ends
+    without error, and on any error (or Ctrl-C) it is removed and ``path`` is left as it was. Failing to create or
+    rename it raises a DataFileError naming ``path``."""
+    path = Path(path)
+    check_writable(path)
+    with writing(path):
+        fd, tmp = atomic_path(path)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w", **options) as f:
+            yield f
+        with writing(path):
+            publish(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class _ShardWriter:
+    """The clips of a shard as they stream in: features appended in blocks of chunks, the clip and caption columns
+    and the train split's statistics gathered for the tables written at the end."""
+
+    def __init__(self, f: h5py.File, action_names: list[str], compute_stats: bool) -> None:
+        self.feats = f.create_dataset(
+            "features", shape=(0, FEATURE_DIM), maxshape=(None, FEATURE_DIM), dtype=np.float32,
+            chunks=(_CHUNK_ROWS, FEATURE_DIM), compression="gzip", compression_opts=1, shuffle=True,
+            track_times=False,
+        )
+        self.action_index = {a: i for i, a in enumerate(action_names)}
+        self.acc = _Accumulator() if compute_stats else None
+        self.cols: dict[str, list] = {k: [] for k in ("name", "offset", "length", "split", "action", "source_file",
+                                                      "mirror_of")}
+        self.caps: dict[str, list] = {k: [] for k in ("clip", "text", "tokens", "start", "end")}
+        self.rows = 0
+        self.buffer: list[np.ndarray] = []
+        self.buffered = 0
+
+    def add(self, clip: ClipRecord) -> None:
+        x = np.asarray(clip.features, dtype=np.float32)
+        if x.ndim != 2 or x.shape[1] != FEATURE_DIM:
+            raise ValueError(f"clip {clip.name}: features of shape {x.shape}, expected (T, {FEATURE_DIM})")
+        i, cols = len(self.cols["name"]), self.cols
+        for key, value in (("name", clip.name), ("offset", self.rows), ("length", len(x)), ("split", clip.split),
+                           ("action", self.action_index[clip.action] if clip.action is not None else -1),
+                           ("source_file", clip.source_file), ("mirror_of", clip.mirror_of or "")):
+            cols[key].append(value)
+        for c in clip.captions:
+            for key, value in (("clip", i), ("text", c.text), ("tokens", c.tokens), ("start", c.start),
+                               ("end", c.end)):
+                self.caps[key].append(value)
+        if clip.split == "train" and self.acc is not None:
+            self.acc.add(x)
+        self.rows += len(x)
+        self.buffer.append(x)
+        self.buffered += len(x)
+        if self.buffered >= 16 * _CHUNK_ROWS:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.buffer:
+            block = np.concatenate(self.buffer)
+            self.feats.resize(self.feats.shape[0] + len(block), axis=0)
+            self.feats[-len(block):] = block
+            self.buffer.clear()
+            self.buffered = 0
+
+
 def write_shard(
     path: str | os.PathLike,
     clips: Iterable[ClipRecord],
@@ -239,70 +308,14 @@ def write_shard(
     ``stats`` keeps given Mean/Std (a processed HumanML3D folder's own); otherwise they are computed
     on the train split with HumanML3D's rule (per-feature mean; std averaged within each group).
     """
-    path = Path(path)
-    check_writable(path)
-    with writing(path):
-        fd, tmp = atomic_path(path)
-    os.close(fd)
-    action_index = {a: i for i, a in enumerate(action_names)}
-    acc = _Accumulator()
-    cols: dict[str, list] = {k: [] for k in ("name", "offset", "length", "split", "action", "source_file", "mirror_of")}
-    caps: dict[str, list] = {k: [] for k in ("clip", "text", "tokens", "start", "end")}
-    try:
-        with h5py.File(tmp, "w", track_order=True) as f:
-            feats = f.create_dataset(
-                "features", shape=(0, FEATURE_DIM), maxshape=(None, FEATURE_DIM), dtype=np.float32,
-                chunks=(_CHUNK_ROWS, FEATURE_DIM), compression="gzip", compression_opts=1, shuffle=True,
-                track_times=False,
-            )
-            rows = 0
-            buffer: list[np.ndarray] = []
-            buffered = 0
-
-            def flush() -> None:
-                nonlocal buffered
-                if buffer:
-                    block = np.concatenate(buffer)
-                    feats.resize(feats.shape[0] + len(block), axis=0)
-                    feats[-len(block):] = block
-                    buffer.clear()
-                    buffered = 0
-
-            for clip in clips:
-                x = np.asarray(clip.features, dtype=np.float32)
-                if x.ndim != 2 or x.shape[1] != FEATURE_DIM:
-                    raise ValueError(f"clip {clip.name}: features of shape {x.shape}, expected (T, {FEATURE_DIM})")
-                i = len(cols["name"])
-                cols["name"].append(clip.name)
-                cols["offset"].append(rows)
-                cols["length"].append(len(x))
-                cols["split"].append(clip.split)
-                cols["action"].append(action_index[clip.action] if clip.action is not None else -1)
-                cols["source_file"].append(clip.source_file)
-                cols["mirror_of"].append(clip.mirror_of or "")
-                for c in clip.captions:
-                    caps["clip"].append(i)
-                    caps["text"].append(c.text)
-                    caps["tokens"].append(c.tokens)
-                    caps["start"].append(c.start)
-                    caps["end"].append(c.end)
-                if clip.split == "train" and stats is None:
-                    acc.add(x)
-                rows += len(x)
-                buffer.append(x)
-                buffered += len(x)
-                if buffered >= 16 * _CHUNK_ROWS:
-                    flush()
-            flush()
-
-            _write_tables(f, cols, caps, stats, acc, source=source, action_names=action_names, provenance=provenance)
-        with writing(path):
-            publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return {"clips": len(cols["name"]), "frames": rows, "captions": len(caps["text"])}
+    with hdf5_output(path, track_order=True) as f:
+        w = _ShardWriter(f, action_names, compute_stats=stats is None)
+        for clip in clips:
+            w.add(clip)
+        w.flush()
+        _write_tables(f, w.cols, w.caps, stats, w.acc, source=source, action_names=action_names,
+                      provenance=provenance)
+    return {"clips": len(w.cols["name"]), "frames": w.rows, "captions": len(w.caps["text"])}
 
 
 def _strings(ds) -> list[str]:

@@ -27,9 +27,8 @@ import h5py
 import numpy as np
 
 from lsgan import __version__
-from lsgan.data.shards import DataFileError, check_layout, check_writable, open_hdf5, reading, writing
+from lsgan.data.shards import DataFileError, check_layout, check_writable, hdf5_output, open_hdf5, reading
 from lsgan.faults import fault_point
-from lsgan.io import atomic_path, publish
 
 FORMAT = "lsgan-latent-cache"
 FORMAT_VERSION = 1
@@ -99,40 +98,29 @@ def write_latent_cache(
     emb = np.asarray(caption_embedding, np.float32)
     emb = emb.reshape(len(caption_text), -1) if emb.size else np.zeros((len(caption_text), 0), np.float32)
     mean, std = latent_stats(mu, splits)
-    check_writable(path)
-    with writing(path):
-        fd, tmp = atomic_path(path)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            g = f.create_group("clips")
-            g.create_dataset("name", data=np.array(names, dtype=object), dtype=_STR)
-            g.create_dataset("split", data=np.array(splits.tolist(), dtype=object), dtype=_STR)
-            g.create_dataset("action", data=np.asarray(actions, np.int32))
-            g.create_dataset("length", data=np.asarray(lengths, np.int32))
-            g = f.create_group("latents")
-            g.create_dataset("mu", data=mu)
-            g.create_dataset("logvar", data=logvar)
-            fault_point("cache.write")
-            g = f.create_group("captions")
-            g.create_dataset("clip", data=np.asarray(caption_clip, np.int32))
-            g.create_dataset("text", data=np.array(caption_text, dtype=object), dtype=_STR)
-            g.create_dataset("embedding", data=emb)
-            g = f.create_group("stats")
-            g.create_dataset("mean", data=mean)
-            g.create_dataset("std", data=std)
-            f.attrs.update(
-                format=FORMAT, format_version=FORMAT_VERSION, lsgan_version=__version__, vae_hash=vae_hash,
-                vae_path=vae_path, text_encoder=text_encoder, text_dim=int(emb.shape[1]),
-                latent_dim=int(mu.shape[1]), action_names=json.dumps(action_names),
-                data=json.dumps(data or []), window=window,
-            )
-        with writing(path):
-            publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with hdf5_output(path) as f:
+        g = f.create_group("clips")
+        g.create_dataset("name", data=np.array(names, dtype=object), dtype=_STR)
+        g.create_dataset("split", data=np.array(splits.tolist(), dtype=object), dtype=_STR)
+        g.create_dataset("action", data=np.asarray(actions, np.int32))
+        g.create_dataset("length", data=np.asarray(lengths, np.int32))
+        g = f.create_group("latents")
+        g.create_dataset("mu", data=mu)
+        g.create_dataset("logvar", data=logvar)
+        fault_point("cache.write")
+        g = f.create_group("captions")
+        g.create_dataset("clip", data=np.asarray(caption_clip, np.int32))
+        g.create_dataset("text", data=np.array(caption_text, dtype=object), dtype=_STR)
+        g.create_dataset("embedding", data=emb)
+        g = f.create_group("stats")
+        g.create_dataset("mean", data=mean)
+        g.create_dataset("std", data=std)
+        f.attrs.update(
+            format=FORMAT, format_version=FORMAT_VERSION, lsgan_version=__version__, vae_hash=vae_hash,
+            vae_path=vae_path, text_encoder=text_encoder, text_dim=int(emb.shape[1]),
+            latent_dim=int(mu.shape[1]), action_names=json.dumps(action_names),
+            data=json.dumps(data or []), window=window,
+        )
     return path
 
 
