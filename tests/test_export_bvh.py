@@ -99,6 +99,8 @@ def test_bad_input_is_rejected():
         joints_to_bvh(np.full((5, 22, 3), np.nan))
     with pytest.raises(ValueError):
         joints_to_bvh(np.zeros((5, 22, 3)) + np.arange(22)[:, None] * 0.1, fps=0)
+    with pytest.raises(ValueError, match="positive and finite"):  # a Frame Time of 0 would follow
+        joints_to_bvh(np.zeros((5, 22, 3)) + np.arange(22)[:, None] * 0.1, fps=float("inf"))
 
 
 def test_export_is_fast(clips):

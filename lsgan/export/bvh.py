@@ -219,14 +219,15 @@ def _hierarchy(offsets: np.ndarray) -> str:
 
 
 def checked_motion(joints: np.ndarray, fps: float) -> np.ndarray:
-    """joints (T,22,3) as float64, or ValueError for a wrong shape, non-finite values or a non-positive fps."""
+    """joints (T,22,3) as float64, or ValueError for a wrong shape, non-finite values or an fps that is not
+    positive and finite (the BVH, GLB and retargeted exports check the same)."""
     j = np.asarray(joints, dtype=np.float64)
     if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or j.shape[0] == 0:
         raise ValueError(f"joints must be (T,{NUM_JOINTS},3) with T > 0, got {j.shape}")
     if not np.isfinite(j).all():
         raise ValueError("joints hold NaN or infinite values")
-    if not fps > 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive and finite, got {fps}")
     return j
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from lsgan.export.bvh import joint_rotations, rest_offsets
+from lsgan.export.bvh import checked_motion, joint_rotations, rest_offsets
 from lsgan.io import atomic_file
 
 GLB_MAGIC = 0x46546C67  # b"glTF" little endian
@@ -146,20 +146,9 @@ class _Builder:
         return len(self.accessors) - 1
 
 
-def _validate(joints: np.ndarray, fps: float) -> np.ndarray:
-    j = np.asarray(joints, dtype=np.float64)
-    if j.ndim != 3 or j.shape[1:] != (NUM_JOINTS, 3) or j.shape[0] == 0:
-        raise ValueError(f"joints must be (T,{NUM_JOINTS},3) with T > 0, got {j.shape}")
-    if not np.isfinite(j).all():
-        raise ValueError("joints hold NaN or infinite values")
-    if not (np.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps must be positive and finite, got {fps}")
-    return j
-
-
 def gltf_document(joints: np.ndarray, *, fps: float = 20.0, name: str = "motion") -> tuple[dict, bytes]:
     """The glTF JSON (dict) and its binary buffer for joint positions (T,22,3) in metres."""
-    j = _validate(joints, fps)
+    j = checked_motion(joints, fps)
     offsets = rest_offsets(j)
     rot = joint_rotations(j, offsets)
     quat = unit_quats(Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(len(j), NUM_JOINTS, 4))
