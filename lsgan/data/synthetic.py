@@ -353,6 +353,31 @@ def _frames(seconds: float) -> int:
     return int(np.clip(round(seconds * FPS), MIN_FRAMES, MAX_FRAMES))
 
 
+def _repetitions(u, reps: int, one: Callable, end: Callable[[float], float] = lambda time: time,
+                 ) -> tuple[list, float, int]:
+    """``reps`` repetitions after a lead-in, each ``one(time) -> (item, time it ends)``, dropping one repetition at
+    a time until ``end(time)`` fits in MAX_FRAMES (one always stays): (items, end time, repetitions kept)."""
+    while True:
+        time, items = u(0.3, 1.0), []
+        for _ in range(reps):
+            item, time = one(time)
+            items.append(item)
+        total = end(time)
+        if total <= MAX_FRAMES / FPS or reps == 1:
+            return items, total, reps
+        reps -= 1
+
+
+def _excursion(u, go: tuple[float, float], hold: tuple[float, float], back: tuple[float, float],
+               rest: tuple[float, float]) -> Callable:
+    """``one`` for :func:`_repetitions`: 0 -> 1, held, -> 0, then a rest: its keys (time, value)."""
+    def one(time: float) -> tuple[list, float]:
+        g, h, b = u(*go), u(*hold), u(*back)
+        keys = [(time, 0.0), (time + g, 1.0), (time + g + h, 1.0), (time + g + h + b, 0.0)]
+        return keys, time + (g + h + b + u(*rest))
+    return one
+
+
 # ---------------------------------------------------------------------------------------- walk / run
 
 _DIRS = {"forward": (0.0, 1.0), "backward": (0.0, -1.0), "left": (1.0, 0.0), "right": (-1.0, 0.0)}
@@ -567,23 +592,17 @@ def _jump(rng: np.random.Generator) -> tuple[_Pose, Predicates]:
 def _jump_schedule(u, forward: bool, reps: int) -> tuple[list[dict], float, int]:
     """Each jump's sizes and phase times (start, crouch end, take-off, landing, bottom, end), the clip's length and
     how many jumps fit: one fewer until they fit MAX_FRAMES."""
-    while True:
-        jumps = []
-        time = u(0.3, 1.0)
-        for _ in range(reps):
-            j = {"dist": u(0.3, 0.9) if forward else 0.0, "rise": u(0.12, 0.3) if forward else u(0.15, 0.35),
-                 "crouch": u(0.12, 0.25), "land": u(0.1, 0.2), "tuck": u(0.1, 0.25), "arms": u(2.0, 2.6),
-                 "lean": u(0.3, 0.5)}
-            j["flight"] = 2 * np.sqrt(2 * j["rise"] / _G)
-            j["v0"] = _G * j["flight"] / 2
-            spans = [u(0.35, 0.6), u(0.18, 0.28), j["flight"], u(0.2, 0.35), u(0.35, 0.6)]
-            j["times"] = time + np.cumsum([0.0] + spans)
-            time = j["times"][-1] + u(0.1, 0.6)
-            jumps.append(j)
-        total = time + u(0.2, 0.8)
-        if total <= MAX_FRAMES / FPS or reps == 1:
-            return jumps, total, reps
-        reps -= 1
+    def one(time: float) -> tuple[dict, float]:
+        j = {"dist": u(0.3, 0.9) if forward else 0.0, "rise": u(0.12, 0.3) if forward else u(0.15, 0.35),
+             "crouch": u(0.12, 0.25), "land": u(0.1, 0.2), "tuck": u(0.1, 0.25), "arms": u(2.0, 2.6),
+             "lean": u(0.3, 0.5)}
+        j["flight"] = 2 * np.sqrt(2 * j["rise"] / _G)
+        j["v0"] = _G * j["flight"] / 2
+        spans = [u(0.35, 0.6), u(0.18, 0.28), j["flight"], u(0.2, 0.35), u(0.35, 0.6)]
+        j["times"] = time + np.cumsum([0.0] + spans)
+        return j, j["times"][-1] + u(0.1, 0.6)
+
+    return _repetitions(u, reps, one, end=lambda time: time + u(0.2, 0.8))
 
 
 def _jump_drivers(d: dict, t: np.ndarray, j: dict, a: float, *, fwd: float, width: float, p_to: float,
@@ -659,18 +678,10 @@ def _squat(rng: np.random.Generator) -> tuple[_Pose, Predicates]:
     u = rng.uniform
     reps = int(rng.integers(1, 4))
     depth, back, lean_max, arm = u(0.3, 0.48), u(0.15, 0.3), u(0.35, 0.6), u(1.1, 1.6)
-    while True:
-        time, keys = u(0.3, 1.0), [(0.0, 0.0)]
-        for _ in range(reps):
-            down, hold, up = u(0.7, 1.2), u(0.1, 0.8), u(0.7, 1.2)
-            keys += [(time, 0.0), (time + down, 1.0), (time + down + hold, 1.0), (time + down + hold + up, 0.0)]
-            time += down + hold + up + u(0.2, 0.8)
-        if time <= MAX_FRAMES / FPS or reps == 1:
-            break
-        reps -= 1
+    squats, time, reps = _repetitions(u, reps, _excursion(u, (0.7, 1.2), (0.1, 0.8), (0.7, 1.2), (0.2, 0.8)))
     T = _frames(time + u(0.0, 0.5))
     t, pose = _stand(rng, T, width=(0.14, 0.2), toe_out=(0.2, 0.4))
-    prof = _keys(t, *zip(*keys))
+    prof = _keys(t, *zip(*[(0.0, 0.0)] + [k for keys in squats for k in keys]))
     pose.pelvis[:, 1] -= depth * prof
     pose.pelvis[:, 2] -= back * depth * prof
     pose.lean = pose.lean + lean_max * prof
@@ -727,18 +738,10 @@ def _raise(rng: np.random.Generator, sides: tuple[int, ...]) -> tuple[_Pose, Pre
     u = rng.uniform
     reps = int(rng.integers(1, 4))
     e_r, azim, bend = u(2.65, 3.0), u(0.0, 1.4), u(0.0, 0.2)
-    while True:
-        time, keys = u(0.3, 1.0), [(0.0, 0.0)]
-        for _ in range(reps):
-            up, hold, down = u(0.5, 1.0), u(0.4, 1.8), u(0.5, 1.0)
-            keys += [(time, 0.0), (time + up, 1.0), (time + up + hold, 1.0), (time + up + hold + down, 0.0)]
-            time += up + hold + down + u(0.3, 0.8)
-        if time <= MAX_FRAMES / FPS or reps == 1:
-            break
-        reps -= 1
+    raises, time, reps = _repetitions(u, reps, _excursion(u, (0.5, 1.0), (0.4, 1.8), (0.5, 1.0), (0.3, 0.8)))
     T = _frames(time + u(0.0, 0.5))
     t, pose = _stand(rng, T)
-    times, vals = zip(*keys)
+    times, vals = zip(*[(0.0, 0.0)] + [k for keys in raises for k in keys])
     for k in sides:
         s = _SIGN[k]
         delay = u(0.0, 0.08) if len(sides) > 1 else 0.0
@@ -771,15 +774,12 @@ def _kick(rng: np.random.Generator, k: int) -> tuple[_Pose, Predicates]:
     u, s, d = rng.uniform, _SIGN[k], _SIDE_NAME[k]
     reps = int(rng.integers(1, 4))
     height, p_k, shift = u(0.3, 0.75), u(-0.2, 0.3), u(0.04, 0.07)
-    while True:
-        time, kicks = u(0.3, 1.0), []
-        for _ in range(reps):
-            spans = [u(0.3, 0.5), u(0.2, 0.3), u(0.18, 0.28), u(0.2, 0.3), u(0.25, 0.4), u(0.3, 0.5)]
-            kicks.append(time + np.cumsum([0.0] + spans))
-            time = kicks[-1][-1] + u(0.2, 0.6)
-        if time <= MAX_FRAMES / FPS or reps == 1:
-            break
-        reps -= 1
+    def one(time: float) -> tuple[np.ndarray, float]:  # the phase times of a kick, from its weight shift
+        times = time + np.cumsum([0.0, u(0.3, 0.5), u(0.2, 0.3), u(0.18, 0.28), u(0.2, 0.3), u(0.25, 0.4),
+                                  u(0.3, 0.5)])
+        return times, times[-1] + u(0.2, 0.6)
+
+    kicks, time, reps = _repetitions(u, reps, one)
     T = _frames(time + u(0.0, 0.5))
     t, pose = _stand(rng, T)
     hip_y = pose.pelvis[0, 1] - 0.03
