@@ -302,6 +302,53 @@ def _overrides(values: dict, **options) -> dict:
     return {**values, **{k: v for k, v in options.items() if v is not None}}
 
 
+def _cache_training_options(command):
+    """The options of the commands that train on a latent cache (train-gan, train-diffusion)."""
+    options = [
+        click.option("--cache", required=True, type=click.Path(exists=True, dir_okay=False),
+                     help="Latent cache from encode-latents."),
+        click.option("--recipe", help="Recipe YAML (or a name in recipes/); its gan: or diffusion: section sets "
+                                      "every hyperparameter."),
+        click.option("--cond", type=click.Choice(["text", "action"]),
+                     help="Condition on caption embeddings or action labels."),
+        click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv)."),
+        click.option("--max-steps", type=int, help="Override the recipe's number of training steps (a GAN's: generator "
+                                                        "steps)."),
+        click.option("--seed", type=int),
+        click.option("--vae", type=click.Path(exists=True),
+                     help="Check the cache against this VAE (default: the VAE it was encoded with)."),
+        click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded."),
+        click.option("--device", default="auto", show_default=True),
+        click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint."),
+        click.option("--force", is_flag=True,
+                     help="Start over in --out, removing the earlier run's own files (never others)."),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def _train_on_cache(kind: str, model_config, train_config, model_options: dict, cache, recipe, out, max_steps, seed,
+                    vae, allow_stale, run) -> None:
+    """The recipe's ``kind`` section with the command's overrides, the cache checked against its VAE, then
+    ``run(model config, train config, expected VAE hash)``; its summary on stderr, failures as one line."""
+    from lsgan.models.cache import check_cache_vae
+    from lsgan.recipes import build, section
+    from lsgan.train.common import TrainingDiverged
+
+    r = section(_recipe(recipe), kind)
+    try:
+        expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
+        model = build(model_config, _overrides(section(r, "model"), **model_options), f"{kind}.model")
+        train = build(train_config, _overrides(section(r, "train"), max_steps=max_steps, seed=seed), f"{kind}.train")
+        result = run(model, train, expect)
+    except KeyboardInterrupt:
+        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
+    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
+        _fail(str(e))
+    click.echo(json.dumps(result, default=str), err=True)
+
+
 @main.command("train-vae", epilog="""\b
 Examples:
   lsgan train-vae --data synth.h5 --recipe demo --out runs/vae
@@ -381,43 +428,23 @@ Examples:
   lsgan train-gan --cache cache.h5 --arch vanilla-wgan-gp --cond text --max-steps 20000 --out runs/vwgan
   lsgan train-gan --cache act12_cache.h5 --recipe humanact12 --cond action --out runs/act-gan
 """)
-@click.option("--cache", required=True, type=click.Path(exists=True, dir_okay=False), help="Latent cache from encode-latents.")
-@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its gan: section sets every hyperparameter.")
+@_cache_training_options
 @click.option("--arch", type=click.Choice(["vanilla-gan", "vanilla-wgan-gp", "deep-gan", "deep-wgan-gp"]),
               help="GAN variant (default: the recipe's, else deep-wgan-gp).")
-@click.option("--cond", type=click.Choice(["text", "action"]), help="Condition on caption embeddings or action labels.")
-@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv).")
-@click.option("--max-steps", type=int, help="Override the recipe's number of generator steps.")
-@click.option("--seed", type=int)
-@click.option("--vae", type=click.Path(exists=True), help="Check the cache against this VAE (default: the VAE it was encoded with).")
-@click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded.")
-@click.option("--device", default="auto", show_default=True)
-@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
-@click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
 def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_stale, device, resume, force) -> None:
     """Train a latent GAN from the cache alone (the VAE is never run while training).
 
     The cache is refused when its VAE checkpoint has changed since it was encoded (a stale cache), so a
     GAN never learns latents its decoder does not understand.
     """
-    from lsgan.models.cache import check_cache_vae
     from lsgan.models.gan import GANConfig
-    from lsgan.recipes import build, section
-    from lsgan.train.common import TrainingDiverged
     from lsgan.train.gan import GANTrainConfig, train_gan
 
-    r = section(_recipe(recipe), "gan")
-    try:
-        expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
-        gan = build(GANConfig, _overrides(section(r, "model"), arch=arch, cond=cond), "gan.model")
-        train = build(GANTrainConfig, _overrides(section(r, "train"), max_steps=max_steps, seed=seed), "gan.train")
-        result = train_gan(cache, out, gan=gan, train=train, device=device, resume=resume, force=force,
-                           expect_vae_hash=expect)
-    except KeyboardInterrupt:
-        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
-    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
-        _fail(str(e))
-    click.echo(json.dumps(result, default=str), err=True)
+    _train_on_cache("gan", GANConfig, GANTrainConfig, dict(arch=arch, cond=cond), cache, recipe, out, max_steps, seed,
+                    vae, allow_stale, lambda model, train, expect: train_gan(
+                        cache, out, gan=model, train=train, device=device, resume=resume, force=force,
+                        expect_vae_hash=expect))
+
 
 @main.command("train-evaluator", epilog="""\b
 Examples:
@@ -510,42 +537,20 @@ Examples:
   lsgan train-diffusion --cache act12-cache.h5 --recipe humanact12 --out runs/act-diffusion --resume
   lsgan generate --gan runs/diffusion --vae runs/vae --text "a person walks forward" --steps 50 --guidance 7.5 -o out/
 """)
-@click.option("--cache", required=True, type=click.Path(exists=True, dir_okay=False), help="Latent cache from encode-latents.")
-@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its diffusion: section sets every hyperparameter.")
-@click.option("--cond", type=click.Choice(["text", "action"]), help="Condition on caption embeddings or action labels.")
-@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv).")
-@click.option("--max-steps", type=int, help="Override the recipe's number of training steps.")
-@click.option("--seed", type=int)
-@click.option("--vae", type=click.Path(exists=True), help="Check the cache against this VAE (default: the VAE it was encoded with).")
-@click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded.")
-@click.option("--device", default="auto", show_default=True)
-@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
-@click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
+@_cache_training_options
 def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_stale, device, resume, force) -> None:
     """Train the latent-diffusion baseline (MLD's denoiser, DDIM, classifier-free guidance) on the same cache.
 
     Like train-gan it reads the cache alone and refuses one whose VAE has changed since it was encoded;
     `lsgan generate --gan RUN` and `lsgan evaluate` take the result wherever they take a GAN.
     """
-    from lsgan.models.cache import check_cache_vae
     from lsgan.models.diffusion import DiffusionConfig
-    from lsgan.recipes import build, section
-    from lsgan.train.common import TrainingDiverged
     from lsgan.train.diffusion import DiffusionTrainConfig, train_diffusion
 
-    r = section(_recipe(recipe), "diffusion")
-    try:
-        expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
-        model = build(DiffusionConfig, _overrides(section(r, "model"), cond=cond), "diffusion.model")
-        train = build(DiffusionTrainConfig, _overrides(section(r, "train"), max_steps=max_steps, seed=seed),
-                      "diffusion.train")
-        result = train_diffusion(cache, out, diffusion=model, train=train, device=device, resume=resume, force=force,
-                                 expect_vae_hash=expect)
-    except KeyboardInterrupt:
-        _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
-    except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
-        _fail(str(e))
-    click.echo(json.dumps(result, default=str), err=True)
+    _train_on_cache("diffusion", DiffusionConfig, DiffusionTrainConfig, dict(cond=cond), cache, recipe, out, max_steps,
+                    seed, vae, allow_stale, lambda model, train, expect: train_diffusion(
+                        cache, out, diffusion=model, train=train, device=device, resume=resume, force=force,
+                        expect_vae_hash=expect))
 
 
 @main.command(epilog="""\b
