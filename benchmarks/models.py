@@ -10,6 +10,8 @@
    uses. Beside each: the physical floor, the decoder's FLOPs over this CPU's peak at the precision (the peak
    measured here with a 2048-cube matrix product in that precision on all cores; for int8, the feed-forward
    and self-attention products at the int8 rate and the rest at the fp32 rate, as ``--int8`` quantises them).
+   Before and after each row, the machine's int8 rate at that moment (:func:`machine_rate`): the host can slow
+   this machine down unseen, and a row taken then says so (``machine_speed`` in the JSON, 1.0 = the run's best).
 3. With ``--quality-run GAN_RUN`` (a trained text GAN; its VAE from its cache or ``--quality-vae``): the joint
    deviation of each fast runtime from torch fp32 on the same noise, mean and max mm over 100 motions; and how far
    the joints move when the prompt embeddings turn by 1e-4 to 1e-2 (the precision any faster text encoder must
@@ -208,15 +210,29 @@ def bench_generation(frames: int, repeats: dict[int, int], workdir: Path) -> dic
     rows = []
     for name, pipeline in pipelines.items():
         for batch, reps in repeats.items():
+            before = machine_rate()
             t = time_per_motion(pipeline, batch=batch, frames=frames, repeats=reps)
+            rate = [before, machine_rate()]
             floor = floor_ms(PRECISION[name], decoder_gflop, frames, peaks)
             rows.append({"runtime": name, "batch": batch, **t, "motions_per_s": 1000.0 / t["total"],
-                         "decoder_floor_ms": floor, "repeats": reps, "load_avg_1min": os.getloadavg()[0]})
+                         "decoder_floor_ms": floor, "repeats": reps, "load_avg_1min": os.getloadavg()[0],
+                         "machine_int8_gops": rate})
             print(f"[generation] {name:22s} b{batch:<4d} {t['total']:8.2f} ms/motion (q25 {t['total_q25']:.2f}, "
                   f"q75 {t['total_q75']:.2f}; text {t['text']:.2f} + gen {t['generator']:.3f} + dec "
-                  f"{t['decoder']:.2f}) = {1000.0 / t['total']:7.1f} motions/s; decoder floor {floor:.2f} ms",
-                  file=sys.stderr, flush=True)
+                  f"{t['decoder']:.2f}) = {1000.0 / t['total']:7.1f} motions/s; decoder floor {floor:.2f} ms; "
+                  f"machine {rate[0]:.0f} / {rate[1]:.0f} GOP/s", file=sys.stderr, flush=True)
+    best = max([peaks["int8"]] + [x for r in rows for x in r["machine_int8_gops"]])
+    for r in rows:
+        r["machine_speed"] = min(r["machine_int8_gops"]) / best
     return {"frames": frames, "decoder_gflop_per_motion": decoder_gflop, "peak_gflops": peaks, "rows": rows}
+
+
+def machine_rate() -> float:
+    """This machine's int8 rate right now (GOP/s, a 1024-cube product on every usable core, best of 3: ~10 ms),
+    taken before and after each row. On a shared host it drops for seconds at a time with no other process running
+    and no steal time counted (the int8 decoder at batch 1 then takes up to 1.8x as long, one thread's time); each
+    row's ``machine_speed`` is the lower of its two over the best seen in the run."""
+    return peak_gflops("int8", n=1024, reps=3)
 
 
 def joint_deviation(gan_run: Path, vae_run: Path | None, workdir: Path, count: int = 100) -> dict:
