@@ -10,7 +10,7 @@
    uses. Beside each: the physical floor, the decoder's FLOPs over this CPU's peak at the precision (the peak
    measured here with a 2048-cube matrix product in that precision on all cores; for int8, the feed-forward
    and self-attention products at the int8 rate and the rest at the fp32 rate, as ``--int8`` quantises them).
-   Before and after each row, the machine's int8 rate at that moment (:func:`machine_rate`): the host can slow
+   Before and after each row, the machine's int8 rate at that moment (:func:`lsgan.eval.bench.machine_rate`): the host can slow
    this machine down unseen, and a row taken then says so (``machine_speed`` in the JSON, 1.0 = the run's best).
 3. With ``--quality-run GAN_RUN`` (a trained text GAN; its VAE from its cache or ``--quality-vae``): the joint
    deviation of each fast runtime from torch fp32 on the same noise, mean and max mm over 100 motions; and how far
@@ -38,11 +38,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lsgan.eval.bench import (PAPER_VAE, Pipeline, decoder_flops, gan_sampler, paper_gan, save_paper_runs,
-                              time_per_motion, torch_pipeline)
+from lsgan.eval.bench import (PAPER_VAE, Pipeline, decoder_flops, gan_sampler, machine_rate, paper_gan,
+                              peak_gflops, save_paper_runs, time_per_motion, torch_pipeline)
 from lsgan.models.gan import LatentGAN, critic_loss_wgan_gp, g_loss_wgan
 from lsgan.models.vae import MotionVAE
-from lsgan.threads import ThreadPolicy, threads_said
+from lsgan.threads import threads_said
 
 PAPER_GAN = paper_gan("deep-wgan-gp", cond_dim=384)
 
@@ -176,28 +176,6 @@ def generation_pipelines(gan_run: Path, vae_run: Path, onnx_dir: Path) -> dict[s
                                onnx_pipeline(load(onnx_dir, variant="int8")))))
 
 
-def peak_gflops(precision: str, n: int = 2048, reps: int = 5) -> float:
-    """This CPU's matrix-product rate (GFLOP/s; int8: GOP/s) at ``precision``, best of ``reps`` n-cube products on
-    every usable core: the roof the floor is computed from."""
-    if precision == "int8":
-        a, b = (torch.randint(-128, 128, (n, n), dtype=torch.int8) for _ in range(2))
-        product = lambda: torch._int_mm(a, b)  # noqa: E731
-    else:
-        dtype = torch.bfloat16 if precision == "bf16" else torch.float32
-        a, b = (torch.randn(n, n, dtype=dtype) for _ in range(2))
-        product = lambda: a @ b  # noqa: E731
-    with ThreadPolicy(large=True):
-        product()
-        best = min(_seconds(product) for _ in range(reps))
-    return 2 * n**3 / best / 1e9
-
-
-def _seconds(fn: Callable) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
 def bench_generation(frames: int, repeats: dict[int, int], workdir: Path) -> dict:
     """ms per motion (median, quartiles) and motions/s per runtime and batch, with the decoder's floor."""
     from lsgan.deploy.onnx_export import export_onnx
@@ -226,13 +204,6 @@ def bench_generation(frames: int, repeats: dict[int, int], workdir: Path) -> dic
         r["machine_speed"] = min(r["machine_int8_gops"]) / best
     return {"frames": frames, "decoder_gflop_per_motion": decoder_gflop, "peak_gflops": peaks, "rows": rows}
 
-
-def machine_rate() -> float:
-    """This machine's int8 rate right now (GOP/s, a 1024-cube product on every usable core, best of 3: ~10 ms),
-    taken before and after each row. On a shared host it drops for seconds at a time with no other process running
-    and no steal time counted (the int8 decoder at batch 1 then takes up to 1.8x as long, one thread's time); each
-    row's ``machine_speed`` is the lower of its two over the best seen in the run."""
-    return peak_gflops("int8", n=1024, reps=3)
 
 
 def joint_deviation(gan_run: Path, vae_run: Path | None, workdir: Path, count: int = 100) -> dict:

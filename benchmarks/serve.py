@@ -8,7 +8,8 @@ random seed) as soon as its previous answer has arrived, for ``--seconds`` per l
 requests/s, latency p50/p95/p99 (send to last byte), errors (anything but a 200, or a failed connection), the
 mean engine batch size, and the server's peak memory so far (VmHWM, its process and its engine processes added).
 Then ``engine.run`` of the same kind of request one at a time in this process, for as long. The 1-minute load
-average is printed at the start and the end.
+average is printed at the start and the end, and each level's machine speed: the int8 rate of this machine right
+before and after it (the host can slow this machine unseen for seconds, which would bend the levels' ratio).
 
     python benchmarks/serve.py --gan runs/bandai-gan --vae runs/bandai-vae
     python benchmarks/serve.py --clients 1,8,32 --seconds 20 --json serve.json
@@ -146,7 +147,11 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def level(server: Server, clients: int, seconds: float, frames: int, seed: int, unique: bool) -> dict:
-    """``clients`` concurrent clients for ``seconds``: throughput, latency percentiles, errors, peak memory."""
+    """``clients`` concurrent clients for ``seconds``: throughput, latency percentiles, errors, peak memory, and the
+    machine's int8 rate right before and after (:func:`lsgan.eval.bench.machine_rate`, the server idle)."""
+    from lsgan.eval.bench import machine_rate
+
+    before = machine_rate()
     outs = [{"latencies": [], "batches": [], "errors": 0} for _ in range(clients)]
     server_cpu, own_cpu = server.cpu_s(), sum(os.times()[:2])
     start = time.perf_counter()
@@ -165,7 +170,8 @@ def level(server: Server, clients: int, seconds: float, frames: int, seed: int, 
             "p50_ms": 1e3 * percentile(lat, 50), "p95_ms": 1e3 * percentile(lat, 95),
             "p99_ms": 1e3 * percentile(lat, 99), "errors": sum(o["errors"] for o in outs),
             "mean_batch": statistics.fmean(batches) if batches else 0.0, "server_peak_rss_mb": server.peak_rss_mb(),
-            "server_cpu_cores": server_cpu / elapsed, "client_cpu_cores": own_cpu / elapsed}
+            "server_cpu_cores": server_cpu / elapsed, "client_cpu_cores": own_cpu / elapsed,
+            "machine_int8_gops": [before, machine_rate()]}
 
 
 def in_process(models: dict[str, str | bool], seconds: float, frames: int, unique: bool) -> dict:
@@ -224,7 +230,8 @@ def main() -> None:
                 print(f"{n:>3} clients: {r['rps']:7.1f} req/s  p50 {r['p50_ms']:6.1f}  p95 {r['p95_ms']:6.1f}  "
                       f"p99 {r['p99_ms']:6.1f} ms  errors {r['errors']}  mean batch {r['mean_batch']:.1f}  "
                       f"server peak RSS {r['server_peak_rss_mb']:.0f} MB  CPU: server {r['server_cpu_cores']:.2f}, "
-                      f"clients {r['client_cpu_cores']:.2f} cores", flush=True)
+                      f"clients {r['client_cpu_cores']:.2f} cores; machine {r['machine_int8_gops'][0]:.0f} / "
+                      f"{r['machine_int8_gops'][1]:.0f} GOP/s", flush=True)
         finally:
             code = server.stop()
         seq = in_process(models, args.seconds, args.frames, args.unique_prompts)

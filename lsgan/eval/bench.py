@@ -335,6 +335,36 @@ def time_per_motion(pipeline: Pipeline, *, batch: int, frames: int, repeats: int
     return out
 
 
+def peak_gflops(precision: str, n: int = 2048, reps: int = 5) -> float:
+    """This CPU's matrix-product rate (GFLOP/s; int8: GOP/s) at ``precision``, best of ``reps`` n-cube products on
+    every usable core: the roof the floor is computed from."""
+    if precision == "int8":
+        a, b = (torch.randint(-128, 128, (n, n), dtype=torch.int8) for _ in range(2))
+        product = lambda: torch._int_mm(a, b)  # noqa: E731
+    else:
+        dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+        a, b = (torch.randn(n, n, dtype=dtype) for _ in range(2))
+        product = lambda: a @ b  # noqa: E731
+    with ThreadPolicy(large=True):
+        product()
+        best = min(_seconds(product) for _ in range(reps))
+    return 2 * n**3 / best / 1e9
+
+
+def _seconds(fn: Callable) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def machine_rate() -> float:
+    """This machine's int8 rate right now (GOP/s: a 1024-cube product on every usable core, best of 3, ~10 ms), for
+    benchmarks to take before and after each measurement. On a shared host it drops for seconds at a time with no
+    other process running and no steal time counted (the int8 decoder at batch 1 then takes up to 1.8x as long),
+    so a figure taken in such a stretch can say so."""
+    return peak_gflops("int8", n=1024, reps=3)
+
+
 def _timed_name(enc: TextEncoder, cond_dim: int) -> str:
     fit = "" if enc.dim == cond_dim else f", {'zero-padded' if enc.dim < cond_dim else 'cut'} to {cond_dim}"
     return f"{enc.id.split(':')[0]} ({enc.dim}-d{fit})"
