@@ -109,3 +109,16 @@ def test_end_to_end_is_the_sum_of_its_parts():
     assert "deep-wgan-gp vs mld-diffusion (2 DDIM steps, cfg 7.5): the generator is x" in table
     old_keys = {"model", "gflops_2048", "ms_per_motion_b1", "ms_per_motion_b256", "device"}
     assert old_keys <= set(bench.rows_as_dicts(rows)[0]) == {f.name for f in dataclasses.fields(bench.BenchRow)}
+
+
+@pytest.mark.parametrize("precision", ["fp32", "int8"])
+def test_peak_rate_counts_two_n_cubed_operations_per_product(precision, monkeypatch):
+    """The rate is 2 n^3 over the best product's seconds (the probe the benchmarks take before and after each row):
+    with a clock that advances 1 ms per read (a timed product reads it twice), a 64-cube product rates 2 * 64^3 /
+    1e-3; the real probe gives a finite positive rate."""
+    laps = iter(range(10**6))
+    monkeypatch.setattr(bench.time, "perf_counter", lambda: next(laps) * 1e-3)  # a product: two reads, 1 ms apart
+    assert bench.peak_gflops(precision, n=64, reps=2) == pytest.approx(2 * 64**3 / 1e-3 / 1e9)
+    monkeypatch.undo()
+    rate = bench.machine_rate()
+    assert 0 < rate < float("inf")
