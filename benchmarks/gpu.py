@@ -14,7 +14,7 @@ d 256, 4 heads, ff 1024, post-norm), deep-wgan-gp (noise 100, latent 256, hidden
    the longest batch), fp32 and bf16 autocast (the recipe's ``amp: true``).
 3. A deep-wgan-gp step as ``lsgan train-gan`` takes it: 5 critic updates (WGAN-GP, gradient penalty 10) + 1
    generator update, batch 64 (the recipe's), with the library's own ``d_step`` / ``g_step``, fp32 (as the
-   library trains the GAN).
+   library trains the GAN), eager and replayed as one CUDA graph (``lsgan.train.graphs``, the default on one GPU).
 
 Each figure: median over repeats after a warm-up, with min and max; peak GPU memory is
 ``torch.cuda.max_memory_allocated`` from a reset before the configuration's models are built (weights,
@@ -219,30 +219,37 @@ class _RandomPairs:
         return self.mu[i] + self.sigma[i] * torch.randn(b, self.mu.shape[1], generator=g, device=self.mu.device), self.cond[i]
 
 
-def bench_gan_step(steps: int, repeats: int, dev: torch.device) -> dict:
-    """One deep-wgan-gp step as lsgan.train.gan takes it: 5 critic updates + 1 generator update, batch 64."""
+def bench_gan_step(steps: int, repeats: int, dev: torch.device, graph: bool) -> dict:
+    """One deep-wgan-gp step as lsgan.train.gan takes it: 5 critic updates + 1 generator update, batch 64; eager,
+    or replayed as one CUDA graph (``graph``, lsgan.train.graphs, the library's default on one GPU). The
+    optimisers are capturable in both, as the library builds them on CUDA."""
     from lsgan.models.gan import LatentGAN
     from lsgan.train.gan import d_step, g_step
+    from lsgan.train.graphs import GraphedStep, optimizer_options
 
     _fresh()
     torch.manual_seed(0)
     gan = LatentGAN(paper_gan_config()).to(dev).train()
-    opt_d = torch.optim.AdamW(gan.discriminator.parameters(), lr=1e-4, betas=(0.5, 0.9), weight_decay=0.0)
-    opt_g = torch.optim.AdamW(gan.generator.parameters(), lr=1e-4, betas=(0.5, 0.9), weight_decay=0.0)
+    hp = dict(lr=1e-4, betas=(0.5, 0.9), weight_decay=0.0, **optimizer_options(dev))
+    opt_d = torch.optim.AdamW(gan.discriminator.parameters(), **hp)
+    opt_g = torch.optim.AdamW(gan.generator.parameters(), **hp)
     data = _RandomPairs(20_000, gan.config.latent_dim, gan.config.cond_dim, dev)
-    g = torch.Generator(device=dev).manual_seed(0)
+    g = torch.Generator(device=dev)
 
-    def step() -> None:
+    def one(gen: torch.Generator) -> dict[str, torch.Tensor]:
         for _ in range(CRITIC_STEPS):
-            d_step(gan, gan.discriminator, opt_d, data, GAN_BATCH, GP_WEIGHT, g)
-        g_step(gan, gan.generator, opt_g, data, GAN_BATCH, g)
+            d = d_step(gan, gan.discriminator, opt_d, data, GAN_BATCH, GP_WEIGHT, gen)
+        return {**d, "g_loss": g_step(gan, gan.generator, opt_g, data, GAN_BATCH, gen)}
 
-    times = _time_steps(step, warmup=10, steps=steps, repeats=repeats)
-    out = {"what": "gan-step", "mode": "fp32", "arch": "deep-wgan-gp", "batch": GAN_BATCH, "critic_steps": CRITIC_STEPS,
-           "ms_per_step": _spread(times), "peak_gib": _peak_gib(),
+    run = GraphedStep(one) if graph else one
+    seeds = iter(range(10**9))
+    times = _time_steps(lambda: run(g.manual_seed(next(seeds))), warmup=10, steps=steps, repeats=repeats)
+    out = {"what": "gan-step", "mode": "fp32, CUDA graph" if graph else "fp32", "arch": "deep-wgan-gp",
+           "batch": GAN_BATCH, "critic_steps": CRITIC_STEPS, "ms_per_step": _spread(times), "peak_gib": _peak_gib(),
            "parameters": sum(p.numel() for p in gan.parameters())}
-    print(f"  GAN step: {out['ms_per_step']['median']:.2f} ms, peak {out['peak_gib']:.3f} GiB", file=sys.stderr, flush=True)
-    del gan, opt_d, opt_g, data
+    print(f"  GAN step ({out['mode']}): {out['ms_per_step']['median']:.2f} ms, peak {out['peak_gib']:.3f} GiB",
+          file=sys.stderr, flush=True)
+    del gan, opt_d, opt_g, data, run
     return out
 
 
@@ -297,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=30, help="timed repeats at batch 1 (batch 1024: a third, at least 5)")
     ap.add_argument("--train-repeats", type=int, default=7, help="timed runs of training steps")
     ap.add_argument("--vae-frames", default=str(VAE_FRAMES),
-                    help="window lengths of the timed VAE steps, comma-separated (120: recipes/bandai-gpu.yaml)")
+                    help="window lengths of the timed VAE steps, comma-separated (120: recipes/bandai-gpu.yaml; empty: no VAE step)")
     args = ap.parse_args(argv)
     if not torch.cuda.is_available():
         print("no CUDA device: benchmarks/gpu.py measures the GPU path only; nothing measured "
@@ -320,10 +327,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  generation {mode} failed: {type(e).__name__}: {e}", file=sys.stderr, flush=True)
                 torch._dynamo.reset()
     if args.only != "generation":
-        for frames in map(int, args.vae_frames.split(",")):
+        for frames in [int(f) for f in args.vae_frames.split(",") if f]:
             for mode in ("fp32", "bf16"):
                 report["training"].append(bench_vae_step(mode, 10, args.train_repeats, dev, frames))
-        report["training"].append(bench_gan_step(20, args.train_repeats, dev))
+        for graph in (False, True):
+            report["training"].append(bench_gan_step(20, args.train_repeats, dev, graph))
     text = tables(report)
     print(text)
     if args.json:

@@ -315,6 +315,9 @@ def _cache_training_options(command):
         click.option("--max-steps", type=int, help="Override the recipe's number of training steps (a GAN's: generator "
                                                         "steps)."),
         click.option("--seed", type=int),
+        click.option("--cuda-graph/--no-cuda-graph", default=None,
+                     help="On one CUDA device, replay each step as one CUDA graph (default: the recipe's, else on); "
+                          "the same updates either way."),
         click.option("--vae", type=click.Path(exists=True),
                      help="Check the cache against this VAE (default: the VAE it was encoded with)."),
         click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded."),
@@ -328,8 +331,8 @@ def _cache_training_options(command):
     return command
 
 
-def _train_on_cache(kind: str, model_config, train_config, model_options: dict, cache, recipe, out, max_steps, seed,
-                    vae, allow_stale, run) -> None:
+def _train_on_cache(kind: str, model_config, train_config, model_options: dict, train_options: dict, cache, recipe,
+                    out, vae, allow_stale, run) -> None:
     """The recipe's ``kind`` section with the command's overrides, the cache checked against its VAE, then
     ``run(model config, train config, expected VAE hash)``; its summary on stderr, failures as one line."""
     from lsgan.models.cache import check_cache_vae
@@ -340,7 +343,7 @@ def _train_on_cache(kind: str, model_config, train_config, model_options: dict, 
     try:
         expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
         model = build(model_config, _overrides(section(r, "model"), **model_options), f"{kind}.model")
-        train = build(train_config, _overrides(section(r, "train"), max_steps=max_steps, seed=seed), f"{kind}.train")
+        train = build(train_config, _overrides(section(r, "train"), **train_options), f"{kind}.train")
         result = run(model, train, expect)
     except KeyboardInterrupt:
         _stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
@@ -431,7 +434,8 @@ Examples:
 @_cache_training_options
 @click.option("--arch", type=click.Choice(["vanilla-gan", "vanilla-wgan-gp", "deep-gan", "deep-wgan-gp"]),
               help="GAN variant (default: the recipe's, else deep-wgan-gp).")
-def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_stale, device, resume, force) -> None:
+def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, cuda_graph, vae, allow_stale, device, resume,
+                  force) -> None:
     """Train a latent GAN from the cache alone (the VAE is never run while training).
 
     The cache is refused when its VAE checkpoint has changed since it was encoded (a stale cache), so a
@@ -440,7 +444,8 @@ def train_gan_cmd(cache, recipe, arch, cond, out, max_steps, seed, vae, allow_st
     from lsgan.models.gan import GANConfig
     from lsgan.train.gan import GANTrainConfig, train_gan
 
-    _train_on_cache("gan", GANConfig, GANTrainConfig, dict(arch=arch, cond=cond), cache, recipe, out, max_steps, seed,
+    _train_on_cache("gan", GANConfig, GANTrainConfig, dict(arch=arch, cond=cond),
+                    dict(max_steps=max_steps, seed=seed, cuda_graph=cuda_graph), cache, recipe, out,
                     vae, allow_stale, lambda model, train, expect: train_gan(
                         cache, out, gan=model, train=train, device=device, resume=resume, force=force,
                         expect_vae_hash=expect))
@@ -538,7 +543,8 @@ Examples:
   lsgan generate --gan runs/diffusion --vae runs/vae --text "a person walks forward" --steps 50 --guidance 7.5 -o out/
 """)
 @_cache_training_options
-def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_stale, device, resume, force) -> None:
+def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, cuda_graph, vae, allow_stale, device, resume,
+                        force) -> None:
     """Train the latent-diffusion baseline (MLD's denoiser, DDIM, classifier-free guidance) on the same cache.
 
     Like train-gan it reads the cache alone and refuses one whose VAE has changed since it was encoded;
@@ -547,8 +553,9 @@ def train_diffusion_cmd(cache, recipe, cond, out, max_steps, seed, vae, allow_st
     from lsgan.models.diffusion import DiffusionConfig
     from lsgan.train.diffusion import DiffusionTrainConfig, train_diffusion
 
-    _train_on_cache("diffusion", DiffusionConfig, DiffusionTrainConfig, dict(cond=cond), cache, recipe, out, max_steps,
-                    seed, vae, allow_stale, lambda model, train, expect: train_diffusion(
+    _train_on_cache("diffusion", DiffusionConfig, DiffusionTrainConfig, dict(cond=cond),
+                    dict(max_steps=max_steps, seed=seed, cuda_graph=cuda_graph), cache, recipe, out,
+                    vae, allow_stale, lambda model, train, expect: train_diffusion(
                         cache, out, diffusion=model, train=train, device=device, resume=resume, force=force,
                         expect_vae_hash=expect))
 

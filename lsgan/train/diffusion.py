@@ -28,6 +28,7 @@ from lsgan.models.diffusion import (
     load_diffusion,
 )
 from lsgan.train.common import seed_everything
+from lsgan.train.graphs import optimizer_options
 from lsgan.train.latents import LatentTrainConfig, latent_summary, latent_trainer, open_cache
 from lsgan.train.loop import Env, fit, launch
 
@@ -64,7 +65,8 @@ def _train(env: Env, cache_path: Path, cfg: DiffusionConfig, train: DiffusionTra
     cfg, prev, data = open_cache(env, cache_path, cfg, train, "diffusion", expect_vae_hash, expect_text_encoder)
     seed_everything(train.seed)
     model = LatentDiffusion(cfg).to(env.device)
-    opt = torch.optim.AdamW(model.parameters(), lr=train.lr, betas=train.betas, weight_decay=train.weight_decay)
+    opt = torch.optim.AdamW(model.parameters(), lr=train.lr, betas=train.betas, weight_decay=train.weight_decay,
+                            **optimizer_options(env.device))
     net = env.ddp(model.denoiser)
 
     def step(g: torch.Generator) -> dict[str, torch.Tensor]:
@@ -77,6 +79,7 @@ def _train(env: Env, cache_path: Path, cfg: DiffusionConfig, train: DiffusionTra
 
     sampling = {"steps": train.eval_steps, "guidance": train.eval_guidance, "eta": 0.0}
     config = {"diffusion": asdict(cfg), "train": asdict(train)}
-    t = latent_trainer(env, "diffusion", "diffusion", model, config, {"opt": opt}, step, data, train.seed, **sampling)
+    t = latent_trainer(env, "diffusion", "diffusion", model, config, {"opt": opt}, step, data, train.seed,
+                       train.cuda_graph, **sampling)
     p = fit(env, t, train.schedule(), prev)
     return latent_summary(env, p, data, config) | {"eval_sampling": sampling}

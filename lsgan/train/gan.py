@@ -34,6 +34,7 @@ from lsgan.models.gan import (
     load_gan,
 )
 from lsgan.train.common import seed_everything
+from lsgan.train.graphs import optimizer_options
 from lsgan.train.latents import (
     LatentPairs,
     LatentTrainConfig,
@@ -128,7 +129,7 @@ def _train(env: Env, cache_path: Path, gan: GANConfig, train: GANTrainConfig, ex
     critic_steps = train.critic_steps_for(gan)
     seed_everything(train.seed)
     model = LatentGAN(gan).to(env.device)
-    hp = dict(lr=train.lr, betas=train.betas, weight_decay=train.weight_decay)
+    hp = dict(lr=train.lr, betas=train.betas, weight_decay=train.weight_decay, **optimizer_options(env.device))
     opt_g = torch.optim.AdamW(model.generator.parameters(), **hp)
     opt_d = torch.optim.AdamW(model.discriminator.parameters(), **hp)
     g_net, d_net = env.ddp(model.generator), env.ddp(model.discriminator)
@@ -140,6 +141,6 @@ def _train(env: Env, cache_path: Path, gan: GANConfig, train: GANTrainConfig, ex
 
     config = {"gan": asdict(gan), "train": asdict(train)}
     t = latent_trainer(env, "gan", f"gan {gan.arch}", model, config, {"opt_g": opt_g, "opt_d": opt_d}, step, data,
-                       train.seed)
+                       train.seed, train.cuda_graph)
     p = fit(env, t, train.schedule(), prev)
     return latent_summary(env, p, data, config) | {"critic_steps": critic_steps}

@@ -18,6 +18,7 @@ import torch
 
 from lsgan.eval.metrics import fid
 from lsgan.models.cache import LatentCacheData, StaleCache, read_latent_cache
+from lsgan.train.graphs import GraphedStep, use_cuda_graph
 from lsgan.train.loop import Env, Previous, Progress, Schedule, SeededSteps, Trainer
 
 C = TypeVar("C")
@@ -41,6 +42,7 @@ class LatentTrainConfig:
     fid_samples: int = 2048
     real_latents: str = "sample"  # "sample": z ~ N(mu, exp(logvar)) each step; "mean": mu
     seed: int = 0
+    cuda_graph: bool = True  # on one CUDA device, replay each step as one CUDA graph (lsgan.train.graphs)
 
     def __post_init__(self) -> None:
         self.betas = tuple(self.betas)
@@ -206,8 +208,14 @@ def _adopt(prev: Previous, cache: LatentCacheData, cfg: C, kind: str, say: Calla
 
 def latent_trainer(env: Env, kind: str, desc: str, model: torch.nn.Module, config: dict,
                    optimizers: dict[str, torch.optim.Optimizer], step: Callable, data: LatentData, seed: int,
-                   **sample_options) -> Trainer:
-    """A latent model's Trainer: one seeded generator per step, scored (from step 0) by the latent FID."""
+                   cuda_graph: bool, **sample_options) -> Trainer:
+    """A latent model's Trainer: one seeded generator per step, scored (from step 0) by the latent FID; on one
+    CUDA device with ``cuda_graph``, its steps replayed as one CUDA graph (the optimisers built with
+    :func:`lsgan.train.graphs.optimizer_options`)."""
+    if use_cuda_graph(cuda_graph, env.device, env.dist.enabled):
+        step = GraphedStep(step)
+        env.say("each training step is replayed as one CUDA graph after 3 eager steps (--no-cuda-graph, or "
+                "cuda_graph: false in the recipe, runs every step eagerly: the same updates, more slowly)")
     return Trainer(
         kind=kind, desc=desc, model=model, config=config, optimizers=optimizers, step=step,
         batches=SeededSteps(seed, env.dist.rank, env.device), metric="latent_fid", val_prefix="", log_details=False,
