@@ -9,10 +9,12 @@ requests/s, latency p50/p95/p99 (send to last byte), errors (anything but a 200,
 mean engine batch size, and the server's peak memory so far (VmHWM, its process and its engine processes added).
 Then ``engine.run`` of the same kind of request one at a time in this process, for as long. The 1-minute load
 average is printed at the start and the end, and each level's machine speed: the int8 rate of this machine right
-before and after it (the host can slow this machine unseen for seconds, which would bend the levels' ratio).
+before and after each of its slices. The host can slow this machine unseen for seconds, which would bend the
+levels' ratio, so each level runs as ``--rounds`` slices taken in turn with the others (1, 8, 32, 32, 8, 1, ...):
+a slow stretch then falls on all of them alike; the ratio of each round is printed too.
 
     python benchmarks/serve.py --gan runs/bandai-gan --vae runs/bandai-vae
-    python benchmarks/serve.py --clients 1,8,32 --seconds 20 --json serve.json
+    python benchmarks/serve.py --clients 1,8,32 --seconds 20 --rounds 4 --json serve.json
     python benchmarks/serve.py --model bandai-onnx --int8 --unique-prompts   # an export-model folder
 """
 from __future__ import annotations
@@ -147,10 +149,12 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def level(server: Server, clients: int, seconds: float, frames: int, seed: int, unique: bool) -> dict:
-    """``clients`` concurrent clients for ``seconds``: throughput, latency percentiles, errors, peak memory, and the
-    machine's int8 rate right before and after (:func:`lsgan.eval.bench.machine_rate`, the server idle)."""
+    """``clients`` concurrent clients for ``seconds``: what they measured (latencies, engine batch sizes, errors),
+    the CPU seconds of the server and of the clients, and the machine's int8 rate right before and after
+    (:func:`lsgan.eval.bench.machine_rate`, the server idle)."""
     from lsgan.eval.bench import machine_rate
 
+    time.sleep(0.5)  # the server settles after the last slice (its passes' thread policy: lsgan.serve.batcher)
     before = machine_rate()
     outs = [{"latencies": [], "batches": [], "errors": 0} for _ in range(clients)]
     server_cpu, own_cpu = server.cpu_s(), sum(os.times()[:2])
@@ -163,15 +167,36 @@ def level(server: Server, clients: int, seconds: float, frames: int, seed: int, 
     for t in threads:
         t.join()
     elapsed = time.perf_counter() - start
-    server_cpu, own_cpu = server.cpu_s() - server_cpu, sum(os.times()[:2]) - own_cpu
-    lat = [x for o in outs for x in o["latencies"]]
-    batches = [x for o in outs for x in o["batches"]]
-    return {"clients": clients, "requests": len(lat), "seconds": elapsed, "rps": len(lat) / elapsed,
-            "p50_ms": 1e3 * percentile(lat, 50), "p95_ms": 1e3 * percentile(lat, 95),
-            "p99_ms": 1e3 * percentile(lat, 99), "errors": sum(o["errors"] for o in outs),
-            "mean_batch": statistics.fmean(batches) if batches else 0.0, "server_peak_rss_mb": server.peak_rss_mb(),
-            "server_cpu_cores": server_cpu / elapsed, "client_cpu_cores": own_cpu / elapsed,
+    return {"clients": clients, "seconds": elapsed, "latencies": [x for o in outs for x in o["latencies"]],
+            "batches": [x for o in outs for x in o["batches"]], "errors": sum(o["errors"] for o in outs),
+            "server_cpu_s": server.cpu_s() - server_cpu, "client_cpu_s": sum(os.times()[:2]) - own_cpu,
             "machine_int8_gops": [before, machine_rate()]}
+
+
+def summary(slices: list[dict], server: Server) -> dict:
+    """One level's slices as one row: requests/s over their time, pooled latency percentiles, errors, mean batch,
+    peak memory, cores used, the machine rates measured around them, and each slice's requests/s."""
+    lat = [x for r in slices for x in r["latencies"]]
+    batches = [x for r in slices for x in r["batches"]]
+    seconds = sum(r["seconds"] for r in slices)
+    return {"clients": slices[0]["clients"], "requests": len(lat), "seconds": seconds, "rps": len(lat) / seconds,
+            "p50_ms": 1e3 * percentile(lat, 50), "p95_ms": 1e3 * percentile(lat, 95),
+            "p99_ms": 1e3 * percentile(lat, 99), "errors": sum(r["errors"] for r in slices),
+            "mean_batch": statistics.fmean(batches) if batches else 0.0, "server_peak_rss_mb": server.peak_rss_mb(),
+            "server_cpu_cores": sum(r["server_cpu_s"] for r in slices) / seconds,
+            "client_cpu_cores": sum(r["client_cpu_s"] for r in slices) / seconds,
+            "machine_int8_gops": [x for r in slices for x in r["machine_int8_gops"]],
+            "rps_per_round": [len(r["latencies"]) / r["seconds"] for r in slices]}
+
+
+def interleaved(server: Server, levels: list[int], seconds: float, rounds: int, frames: int, unique: bool) -> list[dict]:
+    """Each level for ``seconds`` in all, as ``rounds`` slices taken in turn (1, 8, 32, then 32, 8, 1, ...), so that
+    a stretch of a slow host (README, Benchmarks) falls on every level alike instead of bending their ratio."""
+    slices: dict[int, list[dict]] = {n: [] for n in levels}
+    for k in range(rounds):
+        for n in (levels if k % 2 == 0 else levels[::-1]):
+            slices[n].append(level(server, n, seconds / rounds, frames, seed=n * 100 + k, unique=unique))
+    return [summary(slices[n], server) for n in levels]
 
 
 def in_process(models: dict[str, str | bool], seconds: float, frames: int, unique: bool) -> dict:
@@ -199,6 +224,8 @@ def main() -> None:
     parser.add_argument("--int8", action="store_true", help="--model: its int8 decoder")
     parser.add_argument("--clients", default="1,8,32", help="concurrent clients per level, comma-separated")
     parser.add_argument("--seconds", type=float, default=20.0, help="per level, and for the in-process run")
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="slices per level, the levels taken in turn (1: each level in one go, as before)")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--unique-prompts", action="store_true",
                         help="every request a sentence never sent before (default: the 16 of PROMPTS, which the "
@@ -223,23 +250,24 @@ def main() -> None:
         server = Server(models, args.server_args.split())
         try:
             level(server, 2, 2.0, args.frames, seed=0, unique=args.unique_prompts)  # warm-up
-            rows = []
-            for n in levels:
-                rows.append(level(server, n, args.seconds, args.frames, seed=n, unique=args.unique_prompts))
-                r = rows[-1]
-                print(f"{n:>3} clients: {r['rps']:7.1f} req/s  p50 {r['p50_ms']:6.1f}  p95 {r['p95_ms']:6.1f}  "
-                      f"p99 {r['p99_ms']:6.1f} ms  errors {r['errors']}  mean batch {r['mean_batch']:.1f}  "
-                      f"server peak RSS {r['server_peak_rss_mb']:.0f} MB  CPU: server {r['server_cpu_cores']:.2f}, "
-                      f"clients {r['client_cpu_cores']:.2f} cores; machine {r['machine_int8_gops'][0]:.0f} / "
-                      f"{r['machine_int8_gops'][1]:.0f} GOP/s", flush=True)
+            rows = interleaved(server, levels, args.seconds, args.rounds, args.frames, args.unique_prompts)
+            for r in rows:
+                print(f"{r['clients']:>3} clients: {r['rps']:7.1f} req/s  p50 {r['p50_ms']:6.1f}  "
+                      f"p95 {r['p95_ms']:6.1f}  p99 {r['p99_ms']:6.1f} ms  errors {r['errors']}  "
+                      f"mean batch {r['mean_batch']:.1f}  server peak RSS {r['server_peak_rss_mb']:.0f} MB  "
+                      f"CPU: server {r['server_cpu_cores']:.2f}, clients {r['client_cpu_cores']:.2f} cores; "
+                      f"machine {min(r['machine_int8_gops']):.0f}-{max(r['machine_int8_gops']):.0f} GOP/s; "
+                      f"per round {' '.join(f'{x:.0f}' for x in r['rps_per_round'])} req/s", flush=True)
         finally:
             code = server.stop()
         seq = in_process(models, args.seconds, args.frames, args.unique_prompts)
     print(f"in-process, one request at a time (engine.run): {seq['rps']:.1f} req/s  p50 {seq['p50_ms']:.1f}  "
           f"p95 {seq['p95_ms']:.1f}  p99 {seq['p99_ms']:.1f} ms")
     best = max(rows, key=lambda r: r["clients"])
+    per_round = [x / y for x, y in zip(best["rps_per_round"], rows[0]["rps_per_round"])]
     print(f"{best['clients']} clients over HTTP: {best['rps'] / rows[0]['rps']:.2f}x the {rows[0]['clients']}-client "
-          f"rate, {best['rps'] / seq['rps']:.2f}x sequential in-process; server exit code {code}")
+          f"rate (round by round {min(per_round):.2f}-{max(per_round):.2f}x), {best['rps'] / seq['rps']:.2f}x "
+          f"sequential in-process; server exit code {code}")
     load_end = os.getloadavg()[0]
     print(f"load average (1 min) at end {load_end:.2f}")
     if args.json:
@@ -247,7 +275,7 @@ def main() -> None:
             "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
             "load_average_1min": {"start": load_start, "end": load_end}, "frames": args.frames,
             "prompts": "unique" if args.unique_prompts else f"{len(PROMPTS)} repeated",
-            "seconds": args.seconds,
+            "seconds": args.seconds, "rounds": args.rounds,
             "models": models if args.model or args.gan else {"gan": "demo-size, untrained"},
             "levels": rows, "in_process": seq, "server_exit_code": code}, indent=1))
 

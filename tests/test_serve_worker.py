@@ -12,7 +12,7 @@ import pytest
 import torch
 from serve_client import Server
 
-from lsgan.serve.batcher import Batcher
+from lsgan.serve.batcher import Batcher, Pass
 from lsgan.serve.engine import Item, load_engine
 from lsgan.serve.server import MAX_WORKERS
 from lsgan.serve.worker import EngineProcess
@@ -100,23 +100,31 @@ def test_the_engine_processes_end_with_the_server(serve_models: Path) -> None:
 
 def test_passes_run_side_by_side_on_two_engines(serve_models: Path) -> None:
     """Two engine processes behind one batcher: a lone request goes to the first engine, on the free cores; a
-    burst fills passes of max_batch motions on both engines at once, one thread each on two cores; every motion
-    equals the lone engine's for its seed (SAME, 1e-5 m: thread counts only reorder float sums)."""
+    burst fills passes of max_batch motions on both engines at once, one thread each on two cores; right after
+    it a lone pass still shares, until settle_ms pass without passes side by side; every motion equals the lone
+    engine's for its seed (SAME, 1e-5 m: thread counts only reorder float sums)."""
     args = dict(gan=str(serve_models / "gan"), vae=str(serve_models / "vae"))
     engines = [EngineProcess(**args), EngineProcess(**args)]
-    batcher = Batcher(engines, gather_ms=20, max_batch=2, cores=2)
-    items = [Item(text=f"a person walks {k} steps", frames=24 + k, seed=k) for k in range(12)]
-    try:
+    batcher = Batcher(engines, gather_ms=20, max_batch=2, cores=2, settle_ms=1000)
+
+    def lone_pass() -> Pass:
         job = batcher.submit(items[0])
         job.future.result(60)
         batcher.done(job)
-        lone = batcher.recent[-1]
+        return batcher.recent[-1]
+
+    items = [Item(text=f"a person walks {k} steps", frames=24 + k, seed=k) for k in range(12)]
+    try:
+        lone = lone_pass()
         assert (lone.engine, lone.beside, lone.motions, lone.threads) == (0, 0, 1, None)  # its engine's own policy
         jobs = [batcher.submit(it) for it in items]
         results = [j.future.result(120) for j in jobs]
         for j in jobs:
             batcher.done(j)
         burst = list(batcher.recent)[1:]
+        assert lone_pass().threads == 1  # alone for an instant under load: it still shares the cores
+        time.sleep(1.05)
+        assert lone_pass().threads is None  # the load has settled: every free core again
         assert sum(p.motions for p in burst) == len(items) and max(p.motions for p in burst) == 2
         assert {p.engine for p in burst} == {0, 1} and any(p.beside == 1 for p in burst)
         assert all(p.threads == 1 for p in burst if p.beside)  # two cores shared by two passes

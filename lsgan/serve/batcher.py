@@ -6,10 +6,15 @@ idle: passes alternating between processes ran 1.5x slower), gathers more reques
 whatever is already waiting) until the pass holds ``max_batch`` motions, and hands the pass to that engine's
 thread; a request that would overflow it opens the next pass. A request that is the only one admitted does not
 wait: nothing could join it.
-Threads per pass: a pass that runs alone (no other pass running, nobody waiting) keeps its engine's own policy,
-the cores that other processes leave free; passes side by side take ``cores // engines`` each. (On two cores,
-two one-thread passes made 1.3x the motions per second of one two-thread pass, Bandai demo-size models, 16 new
-prompts a pass: the threads of a parallel region wait for each other at every operation.)
+Threads per pass: a pass that runs alone (no other pass running, nobody waiting, and no pass started beside
+another for ``settle_ms``) keeps its engine's own policy, the cores that other processes leave free; passes side
+by side take ``cores // engines`` each. (On two cores, two one-thread passes made 1.3x the motions per second of
+one two-thread pass, Bandai demo-size models, 16 new prompts a pass: the threads of a parallel region wait for
+each other at every operation.) The settling time is for sustained load: between two passes there is often an
+instant with nothing running or waiting, and a pass given every core then has another start beside it a
+millisecond later (three threads on two cores). Waiting for ``settle_ms`` without overlap before a pass takes
+every core made 32 clients 7-9% faster on two cores (Bandai demo-size models, repeated prompts); one client at a
+time, whose passes never overlap, still gets every core.
 Admission is bounded (``max_in_flight``): past it :meth:`Batcher.submit` raises :class:`Busy` at once. A request
 that waits past its timeout is cancelled and is not computed if its pass has not started.
 """
@@ -61,9 +66,11 @@ class Batcher:
     """A dispatcher thread that gathers queued jobs into passes, and a thread per engine that runs them."""
 
     def __init__(self, engines: list[Engine], *, gather_ms: float = 1.0, max_batch: int = 16,
-                 max_in_flight: int = 64, cores: int | None = None) -> None:
+                 max_in_flight: int = 64, cores: int | None = None, settle_ms: float = 250.0) -> None:
         self.engines = engines
         self.gather_s, self.max_batch, self.max_in_flight = gather_ms / 1e3, max_batch, max_in_flight
+        self.settle_s = settle_ms / 1e3
+        self._overlapped_at = -float("inf")  # when a pass last started beside another
         cores = cores or usable_cpus()
         self.share = max(1, cores // len(self.engines))  # threads of a pass beside others
         self._queue: queue.Queue[Job | None] = queue.Queue()
@@ -148,6 +155,8 @@ class Batcher:
                     self._idle.add(index)
                     continue
                 threads = self._pass_threads()
+                if self.running:
+                    self._overlapped_at = time.perf_counter()
                 self.recent.append(Pass(index, threads, sum(j.item.num for j in jobs), self.running))
                 self.running += 1
                 self.computing += len(jobs)
@@ -157,9 +166,11 @@ class Batcher:
 
     def _pass_threads(self) -> int | None:
         """Intra-op threads for the pass about to start (under the lock): None (the engine's own policy, the cores
-        other processes leave free) for a pass alone, ``share`` for one beside others."""
+        other processes leave free) for a pass alone, after ``settle_ms`` without passes side by side; ``share``
+        otherwise."""
         alone = self.running == 0 and self._carry is None and self._queue.empty()
-        return None if alone or len(self.engines) == 1 else self.share
+        settled = time.perf_counter() - self._overlapped_at > self.settle_s
+        return None if (alone and settled) or len(self.engines) == 1 else self.share
 
     def _work(self, index: int) -> None:
         """Engine ``index``'s thread: the passes the dispatcher hands it. The engine is marked idle before the
