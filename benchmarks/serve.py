@@ -249,7 +249,8 @@ def main() -> None:
             models = {"gan": str(gan), "vae": str(vae)}
         server = Server(models, args.server_args.split())
         try:
-            level(server, 2, 2.0, args.frames, seed=0, unique=args.unique_prompts)  # warm-up
+            for n in levels:  # warm-up: every level a moment, so that no slice pays for the server's first passes
+                level(server, n, 2.0, args.frames, seed=0, unique=args.unique_prompts)
             rows = interleaved(server, levels, args.seconds, args.rounds, args.frames, args.unique_prompts)
             for r in rows:
                 print(f"{r['clients']:>3} clients: {r['rps']:7.1f} req/s  p50 {r['p50_ms']:6.1f}  "

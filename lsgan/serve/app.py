@@ -116,8 +116,11 @@ def add_error_handlers(app: FastAPI) -> None:
 
 
 def key_check(api_key: str | None):
-    """A dependency: /v1 needs ``Authorization: Bearer KEY`` or ``X-API-Key: KEY`` when the server has a key."""
-    def check(request: Request) -> None:
+    """A dependency: /v1 needs ``Authorization: Bearer KEY`` or ``X-API-Key: KEY`` when the server has a key.
+
+    A coroutine, though it awaits nothing: FastAPI runs a plain function dependency in a worker thread, a thread
+    switch per request for a few dictionary lookups."""
+    async def check(request: Request) -> None:
         if api_key is None:
             return
         given = request.headers.get("x-api-key")

@@ -1,8 +1,8 @@
 """Replay a training step as one CUDA graph.
 
-A latent GAN's step is small and many: deep-wgan-gp's five critic updates (each with a double backward for the
-gradient penalty) and one generator update launch some two thousand kernels on a batch of 64 latents, so on a GPU
-the step is bound by the host launching kernels, not by the GPU running them. Captured once and replayed, the
+A latent GAN's step is many small operations: deep-wgan-gp's five critic updates (each with a double backward for
+the gradient penalty) and one generator update each launch hundreds of kernels on a batch of 64 latents, so on a
+GPU the step is bound by the host launching kernels, not by the GPU running them. Captured once and replayed, the
 whole step is one launch.
 
 What makes the replay the same training as the eager steps:
