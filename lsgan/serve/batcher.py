@@ -13,8 +13,9 @@ one two-thread pass, Bandai demo-size models, 16 new prompts a pass: the threads
 each other at every operation.) The settling time is for sustained load: between two passes there is often an
 instant with nothing running or waiting, and a pass given every core then has another start beside it a
 millisecond later (three threads on two cores). Waiting for ``settle_ms`` without overlap before a pass takes
-every core made 32 clients 7-9% faster on two cores (Bandai demo-size models, repeated prompts); one client at a
-time, whose passes never overlap, still gets every core.
+every core made 32 clients 1-9% faster on two cores (four interleaved A/B pairs, Bandai demo-size models,
+repeated prompts: +6.9, +9.2, +6.1 and +1.3%); one client at a time, whose passes never overlap, still gets every
+core.
 Admission is bounded (``max_in_flight``): past it :meth:`Batcher.submit` raises :class:`Busy` at once. A request
 that waits past its timeout is cancelled and is not computed if its pass has not started.
 """

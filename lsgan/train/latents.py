@@ -214,8 +214,8 @@ def latent_trainer(env: Env, kind: str, desc: str, model: torch.nn.Module, confi
     :func:`lsgan.train.graphs.optimizer_options`)."""
     if use_cuda_graph(cuda_graph, env.device, env.dist.enabled):
         step = GraphedStep(step)
-        env.say("each training step is replayed as one CUDA graph after 3 eager steps (--no-cuda-graph, or "
-                "cuda_graph: false in the recipe, runs every step eagerly: the same updates, more slowly)")
+        env.say(f"each training step is replayed as one CUDA graph after {step.warmup} eager steps (--no-cuda-graph, "
+                "or cuda_graph: false in the recipe, runs every step eagerly: the same updates, more slowly)")
     return Trainer(
         kind=kind, desc=desc, model=model, config=config, optimizers=optimizers, step=step,
         batches=SeededSteps(seed, env.dist.rank, env.device), metric="latent_fid", val_prefix="", log_details=False,
