@@ -2,9 +2,10 @@
 
 Every Bandai-Namco-2 and CMU clip in ../shared is read with lsgan's BVH reader and its preset joint map,
 resampled to 20 fps and checked as imported (``ok``), with the other up axis (``up``: a Y-up file read as
-Z-up) and with the scale x100, x0.01, x10 (a mm file read as cm), x2.54 (a cm file read as inches) and
-x0.394 (an inch file read as cm). Reports, per variant, the clips warned about by kind and the ranges of
-the figures, and the time per clip of the checks (and of reading the BVH file, for comparison).
+Z-up), with the scale x100, x0.01, x10 (a mm file read as cm), x2.54 (a cm file read as inches) and x0.394
+(an inch file read as cm), and with the left and right knees (``knees``) or elbows (``elbows``) swapped in the
+joint map. Reports, per variant, the clips warned about by kind and the ranges of the figures, and the time
+per clip of the checks (and of reading the BVH file, for comparison).
 
     OMP_NUM_THREADS=1 python benchmarks/plausibility.py --json plausibility.json
     python benchmarks/plausibility.py --limit 100 --variants ok up
@@ -36,6 +37,8 @@ VARIANTS = {
     "x10": {"scale_factor": 10.0},
     "x2.54": {"scale_factor": 2.54},
     "x0.394": {"scale_factor": 1 / 2.54},
+    "knees": {"swap": ("left_knee", "right_knee")},
+    "elbows": {"swap": ("left_elbow", "right_elbow")},
 }
 
 
@@ -45,6 +48,9 @@ def variant_map(preset: str, variant: str):
     spec = VARIANTS[variant]
     if "up" in spec:
         jmap = replace(jmap, up=spec["up"])
+    if "swap" in spec:
+        a, b = spec["swap"]
+        jmap = replace(jmap, joints={**jmap.joints, a: jmap.joints[b], b: jmap.joints[a]})
     return replace(jmap, scale=jmap.scale * spec.get("scale_factor", 1.0))
 
 

@@ -1,17 +1,96 @@
 """The ``lsgan`` command line: thin wrappers that parse options and call one library function each."""
 from __future__ import annotations
 
-import json
+import errno
 import os
 import sys
-from pathlib import Path
 
-import click
+from lsgan.interrupts import InterruptGuard
 
-from lsgan import __version__
+# The lsgan program (console script or python -m lsgan.cli) counts Ctrl-C from before click and the commands are
+# imported (~50 ms); LsganGroup.main takes this guard over. Importing this module from other code installs nothing.
+_startup_guard = ([InterruptGuard(exiting=True)] if __name__ == "__main__" or (
+    __name__ == "lsgan.cli" and os.path.splitext(os.path.basename(sys.argv[0]))[0] == "lsgan") else [])
+
+import json  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import click  # noqa: E402
+
+from lsgan import __version__  # noqa: E402
 
 SOURCES = ("synthetic", "bvh", "humanml3d", "joints", "amass", "humanact12")
 INTERRUPTED = 130  # the shell's code for a process stopped by Ctrl-C (128 + SIGINT)
+
+
+class In(click.Path):
+    """A path the command reads. Every path option is an :class:`In` or an :class:`Out` (tests/test_outputs.py
+    checks it), so that :class:`LsganCommand` can refuse an output that is, holds or lies inside an input."""
+
+    role = "input"
+
+    def paths(self, value: str) -> list[str]:
+        return [value]
+
+
+class Out(In):
+    """A path the command writes (a file, a folder, or the stem of several files)."""
+
+    role = "output"
+
+
+class NamedIn(click.ParamType):
+    """``[NAME=]PATH``: an input path with an optional row name."""
+
+    name = "[NAME=]PATH"
+    role = "input"
+
+    def paths(self, value: str) -> list[str]:
+        return [value.rpartition("=")[2]] if "=" in value and not os.path.exists(value) else [value]
+
+
+class MaybeIn(click.ParamType):
+    """An input file when the value names an existing path; else a name (a built-in recipe) or inline text."""
+
+    name = "TEXT"
+    role = "input"
+
+    def paths(self, value: str) -> list[str]:
+        return [value] if os.path.exists(value) else []
+
+
+def declared_paths(command: click.Command, params: dict) -> tuple[list[str], list[str]]:
+    """The input and output paths given to ``command`` (``params`` as parsed), from its parameters' types."""
+    found: dict[str, list[str]] = {"input": [], "output": []}
+    for p in command.params:
+        role = getattr(p.type, "role", None)
+        values = params.get(p.name)
+        if role is None or values is None:
+            continue
+        for v in values if isinstance(values, (tuple, list)) else [values]:
+            found[role] += p.type.paths(os.fspath(v))
+    return found["input"], found["output"]
+
+
+def check_declared_paths(command: click.Command, params: dict) -> None:
+    """Refuse an output that is, holds or lies inside an input, or that overlaps another output."""
+    from lsgan.outputs import OutputError, check_inputs
+
+    ins, outs = declared_paths(command, params)
+    for k, out in enumerate(outs):
+        check_inputs(out, ins)
+        for other in outs[k + 1:]:
+            a, b = Path(out).resolve(), Path(other).resolve()
+            if a == b or a in b.parents or b in a.parents:
+                raise OutputError(f"{out}: is also the output {other}; give each output its own path")
+
+
+class LsganCommand(click.Command):
+    """A command whose declared outputs are checked against its declared inputs before it runs."""
+
+    def invoke(self, ctx: click.Context):
+        check_declared_paths(self, ctx.params)
+        return super().invoke(ctx)
 
 
 def _fail(message: str) -> None:
@@ -41,26 +120,62 @@ def _debugging() -> bool:
     return os.environ.get("LSGAN_DEBUG", "") not in ("", "0")
 
 
+# OSErrors of writing in the words a user acts on (the bare strerror of ENOSPC does not say "disk full")
+PLAIN_ERRNO = {errno.ENOSPC: "disk full (no space left on the device)",
+               errno.EFBIG: "file too large (over the file system's or this process's file-size limit)",
+               errno.EDQUOT: "disk quota exceeded"}
+
+
 def describe(error: BaseException) -> str:
-    """An exception as the one line ``error:`` prints: the file first, then the problem."""
+    """An exception as the one line ``error:`` prints: the file first, then the problem. A KeyError or
+    IndexError (``'optimizer'``) names nothing a user can act on: it is an internal error, to be reported."""
     if isinstance(error, OSError) and error.filename is not None:
-        return f"{error.filename}: {(error.strerror or str(error)).lower()}"
-    if isinstance(error, (ValueError, LookupError, OSError, RuntimeError)) and str(error):
+        said = PLAIN_ERRNO.get(error.errno) or error.strerror or f"cannot write it ({error.args[0]})"
+        return f"{error.filename}: {said[:1].lower()}{said[1:]}"
+    if isinstance(error, (ValueError, OSError, RuntimeError)) and str(error):
         return str(error)
     return (f"internal error: {type(error).__name__}: {error} (please report it; LSGAN_DEBUG=1 or --debug "
             "shows the traceback)")
+
+
+def _plainly(error: Exception) -> str:
+    """A command's failure as :func:`describe` words it; a missing text encoder's message says how to get it."""
+    from lsgan.models.text import TextEncoderUnavailable
+
+    return str(error) if isinstance(error, TextEncoderUnavailable) else describe(error)
 
 
 class LsganGroup(click.Group):
     """Runs a command and turns every failure into one ``error: FILE: problem`` line and a non-zero exit.
 
     Usage errors exit 2, other errors 1, Ctrl-C 130; tracebacks only with ``--debug`` or ``LSGAN_DEBUG=1``.
+    A Ctrl-C is never lost (:class:`lsgan.interrupts.InterruptGuard`): one that Python swallowed in a finaliser
+    is raised again, and a run that received one exits 130 whatever became of the exception.
     """
 
+
+    command_class = LsganCommand
+
     def main(self, *args, **kwargs):
+        guard = _startup_guard.pop() if _startup_guard else InterruptGuard()
+        try:
+            code = self._run(guard, *args, **kwargs)
+        except BaseException:  # --debug: the traceback, with the caller's handler back
+            guard.stop()
+            raise
+        if guard.stop() and code != INTERRUPTED:
+            _close_progress_bars()
+            click.echo("\ninterrupted", err=True)
+            code = INTERRUPTED
+        sys.exit(code)
+
+    def _run(self, guard, *args, **kwargs) -> int:
+        """The command under ``guard``; its exit code, every failure reported as one line."""
         kwargs["standalone_mode"] = False
         try:
-            code = super().main(*args, **kwargs)
+            code = guard.call(super().main, *args, **kwargs)
+        except SystemExit as e:  # a command's own _fail or _stopped
+            code = e.code
         except click.exceptions.Exit as e:
             code = e.exit_code
         except click.ClickException as e:
@@ -76,7 +191,7 @@ class LsganGroup(click.Group):
             _close_progress_bars()
             click.echo(f"error: {describe(e)}", err=True)
             code = 1
-        sys.exit(code if isinstance(code, int) else 0)
+        return code if isinstance(code, int) else 0
 
 
 @click.group(cls=LsganGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -124,7 +239,7 @@ Examples:
   lsgan demo --scale 0.2 --fresh              # start over in demo_out at another scale
   lsgan demo --threads 2                      # a fixed thread count (default: lsgan adapts to the load)
 """)
-@click.option("-o", "--output", default="demo_out", show_default=True, type=click.Path(file_okay=False),
+@click.option("-o", "--output", default="demo_out", show_default=True, type=Out(file_okay=False),
               help="Folder for everything the demo makes; run again to continue or reuse it.")
 @click.option("--scale", type=float, default=None, metavar="FACTOR",
               help="Multiply step counts, the number of clips (at least 400) and the evaluation's replications "
@@ -206,18 +321,18 @@ Examples:
   lsgan preprocess --source amass amass_data --body-models body_models/smplh --index-csv index.csv -o amass.h5
   lsgan preprocess --source humanact12 HumanAct12Poses/humanact12poses.pkl -o act12.h5
 """)
-@click.argument("path", required=False, type=click.Path())
+@click.argument("path", required=False, type=In())
 @click.option("--source", "source_name", type=click.Choice(SOURCES), required=True, help="Kind of input.")
-@click.option("-o", "--output", required=True, type=click.Path(), help="Output .h5 shard (or folder with --format humanml3d).")
+@click.option("-o", "--output", required=True, type=Out(), help="Output .h5 shard (or folder with --format humanml3d).")
 @click.option("--format", "fmt", type=click.Choice(["hdf5", "humanml3d"]), default="hdf5", show_default=True,
               help="hdf5: one lsgan shard; humanml3d: the original folder layout (new_joint_vecs/, texts/, ...).")
 @click.option("--preset", default="bandai", show_default=True, help="BVH joint map: bandai or cmu.")
-@click.option("--joint-map", type=click.Path(exists=True, dir_okay=False), help="BVH joint map JSON (overrides --preset).")
+@click.option("--joint-map", type=In(exists=True, dir_okay=False), help="BVH joint map JSON (overrides --preset).")
 @click.option("--scale", type=float, help="BVH units to metres (default: the preset's).")
 @click.option("--fps", type=float, help="Override the BVH frame rate.")
-@click.option("--texts", type=click.Path(exists=True, file_okay=False), help="joints: caption folder (default PATH/texts).")
-@click.option("--body-models", type=click.Path(exists=True, file_okay=False), help="amass: SMPL-H model folder.")
-@click.option("--index-csv", type=click.Path(exists=True, dir_okay=False), help="amass: HumanML3D's index.csv.")
+@click.option("--texts", type=In(exists=True, file_okay=False), help="joints: caption folder (default PATH/texts).")
+@click.option("--body-models", type=In(exists=True, file_okay=False), help="amass: SMPL-H model folder.")
+@click.option("--index-csv", type=In(exists=True, dir_okay=False), help="amass: HumanML3D's index.csv.")
 @click.option("--device", default="cpu", show_default=True, help="amass: torch device for the body model (cpu, cuda).")
 @click.option("--up-axis", type=click.Choice(["y", "z"]), default="y", show_default=True, help="humanact12: up axis of joints3D.")
 @click.option("--num-clips", default=400, show_default=True, help="synthetic: number of clips.")
@@ -229,7 +344,7 @@ Examples:
               "are reused only when their input files, by SHA-256, and the options are unchanged).")
 @click.option("--strict", is_flag=True, help="Stop at the first bad clip instead of skipping it.")
 @click.option("--force", is_flag=True, help="Replace an existing OUTPUT that lsgan wrote (never another file).")
-@click.option("--report", type=click.Path(), help="Where to write the JSON report (default OUTPUT.report.json).")
+@click.option("--report", type=Out(), help="Where to write the JSON report (default OUTPUT.report.json).")
 def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, texts, body_models, index_csv, device, up_axis,
                num_clips, seed, mirror, min_frames, workers, resume, strict, force, report) -> None:
     """Turn mocap or a dataset into HumanML3D features in an HDF5 shard (or a HumanML3D folder).
@@ -274,7 +389,7 @@ Examples:
   lsgan inspect bandai.h5
   lsgan inspect bandai.h5 --json
 """)
-@click.argument("file", type=click.Path(exists=True, dir_okay=False))
+@click.argument("file", type=In(exists=True, dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
 def inspect(file, as_json) -> None:
     """Show what a shard holds: clips, frames, hours, captions, splits, labels and stats."""
@@ -305,20 +420,20 @@ def _overrides(values: dict, **options) -> dict:
 def _cache_training_options(command):
     """The options of the commands that train on a latent cache (train-gan, train-diffusion)."""
     options = [
-        click.option("--cache", required=True, type=click.Path(exists=True, dir_okay=False),
+        click.option("--cache", required=True, type=In(exists=True, dir_okay=False),
                      help="Latent cache from encode-latents."),
-        click.option("--recipe", help="Recipe YAML (or a name in recipes/); its gan: or diffusion: section sets "
+        click.option("--recipe", type=MaybeIn(), help="Recipe YAML (or a name in recipes/); its gan: or diffusion: section sets "
                                       "every hyperparameter."),
         click.option("--cond", type=click.Choice(["text", "action"]),
                      help="Condition on caption embeddings or action labels."),
-        click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv)."),
+        click.option("--out", required=True, type=Out(), help="Run folder (checkpoints last/ best/, log.csv)."),
         click.option("--max-steps", type=int, help="Override the recipe's number of training steps (a GAN's: generator "
                                                         "steps)."),
         click.option("--seed", type=int),
         click.option("--cuda-graph/--no-cuda-graph", default=None,
                      help="On one CUDA device, replay each step as one CUDA graph (default: the recipe's, else on); "
                           "the same updates either way."),
-        click.option("--vae", type=click.Path(exists=True),
+        click.option("--vae", type=In(exists=True),
                      help="Check the cache against this VAE (default: the VAE it was encoded with)."),
         click.option("--allow-stale", is_flag=True, help="Train even if the VAE changed since the cache was encoded."),
         click.option("--device", default="auto", show_default=True),
@@ -359,9 +474,9 @@ Examples:
   lsgan train-vae --data bandai.h5 --recipe bandai --out runs/bandai-vae --resume
   torchrun --nproc_per_node 4 -m lsgan.cli train-vae --data hml3d.h5 --recipe humanml3d --out runs/vae
 """)
-@click.option("--data", multiple=True, required=True, type=click.Path(exists=True, dir_okay=False), help="Shard(s) to train on.")
-@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its vae: section sets every hyperparameter.")
-@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv).")
+@click.option("--data", multiple=True, required=True, type=In(exists=True, dir_okay=False), help="Shard(s) to train on.")
+@click.option("--recipe", type=MaybeIn(), help="Recipe YAML (or a name in recipes/); its vae: section sets every hyperparameter.")
+@click.option("--out", required=True, type=Out(), help="Run folder (checkpoints last/ best/, log.csv).")
 @click.option("--max-steps", type=int, help="Override the recipe's step budget.")
 @click.option("--batch-size", type=int, help="Override the recipe's batch size.")
 @click.option("--seed", type=int, help="Override the recipe's seed.")
@@ -394,12 +509,12 @@ Examples:
   lsgan encode-latents --data hml3d.h5 --vae runs/vae --text-encoder clip-vit-l-14 --text-encoder-path clip-l14 -o cache.h5
   lsgan encode-latents --data act12.h5 --vae runs/vae --text-encoder none -o cache.h5
 """)
-@click.option("--data", multiple=True, required=True, type=click.Path(exists=True, dir_okay=False), help="Shard(s) to encode.")
-@click.option("--vae", required=True, type=click.Path(exists=True), help="VAE run or checkpoint folder.")
-@click.option("-o", "--output", required=True, type=click.Path(), help="Latent cache (.h5) to write.")
+@click.option("--data", multiple=True, required=True, type=In(exists=True, dir_okay=False), help="Shard(s) to encode.")
+@click.option("--vae", required=True, type=In(exists=True), help="VAE run or checkpoint folder.")
+@click.option("-o", "--output", required=True, type=Out(), help="Latent cache (.h5) to write.")
 @click.option("--text-encoder", help="minilm (default), clip-vit-l-14, or none (default: the recipe's, else minilm).")
-@click.option("--recipe", help="Recipe whose text_encoder: key picks the encoder.")
-@click.option("--text-encoder-path", type=click.Path(exists=True), help="Local folder of the text encoder's weights.")
+@click.option("--recipe", type=MaybeIn(), help="Recipe whose text_encoder: key picks the encoder.")
+@click.option("--text-encoder-path", type=In(exists=True), help="Local folder of the text encoder's weights.")
 @click.option("--min-frames", default=None, type=int, help="Shortest window (default: the VAE's training setting).")
 @click.option("--max-frames", default=None, type=int, help="Longest window (default: the VAE's training setting).")
 @click.option("--batch-size", default=64, show_default=True)
@@ -421,7 +536,7 @@ def encode_latents_cmd(data, vae, output, text_encoder, recipe, text_encoder_pat
             force=force,
         )
     except Exception as e:  # noqa: BLE001 - every failure here is the user's input: report it plainly
-        _fail(f"{type(e).__name__}: {e}" if not isinstance(e, (ValueError, FileNotFoundError)) else str(e))
+        _fail(_plainly(e))
     click.echo(f"wrote {path}", err=True)
 
 
@@ -460,9 +575,9 @@ Examples:
   lsgan train-evaluator --data hml3d.h5 --recipe humanml3d --out runs/hml3d-evaluator --resume
   lsgan evaluate ... --evaluator runs/evaluator     # or the folder of the official T2M files
 """)
-@click.option("--data", multiple=True, required=True, type=click.Path(exists=True, dir_okay=False), help="Shard(s) to train on.")
-@click.option("--out", required=True, type=click.Path(), help="Run folder (checkpoints last/ best/, log.csv, heldout.json).")
-@click.option("--recipe", help="Recipe YAML (or a name in recipes/); its evaluator: section (text:, action:) sets the hyperparameters.")
+@click.option("--data", multiple=True, required=True, type=In(exists=True, dir_okay=False), help="Shard(s) to train on.")
+@click.option("--out", required=True, type=Out(), help="Run folder (checkpoints last/ best/, log.csv, heldout.json).")
+@click.option("--recipe", type=MaybeIn(), help="Recipe YAML (or a name in recipes/); its evaluator: section (text:, action:) sets the hyperparameters.")
 @click.option("--kind", type=click.Choice(["text", "action"]),
               help="text: text-motion evaluator (captions); action: action-recognition GRU (action labels). "
                    "Default: the recipe's only evaluator kind, else text.")
@@ -470,7 +585,7 @@ Examples:
 @click.option("--batch-size", type=int, help="Override the recipe's batch size.")
 @click.option("--seed", type=int, help="Override the recipe's seed.")
 @click.option("--text-encoder", help="text: frozen sentence encoder, minilm or clip-vit-l-14 (default: the recipe's, else minilm).")
-@click.option("--text-encoder-path", type=click.Path(exists=True), help="text: local folder of the sentence encoder's weights.")
+@click.option("--text-encoder-path", type=In(exists=True), help="text: local folder of the sentence encoder's weights.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
@@ -520,7 +635,7 @@ def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, te
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         _fail(str(e))
     except Exception as e:  # noqa: BLE001 - e.g. a text encoder whose weights are absent: say so plainly
-        _fail(f"{type(e).__name__}: {e}")
+        _fail(_plainly(e))
     click.echo(json.dumps(result, default=str), err=True)
     h = result["heldout"]
     if "r_precision_top3" in h:
@@ -572,19 +687,19 @@ Examples:
   lsgan generate --runtime onnx --gan gan-onnx --text "a person walks forward" -o out/   # export-model's folder
   lsgan --threads 1 generate --runtime onnx --int8 --gan gan-onnx --prompts prompts.txt -o out/
 """)
-@click.option("--gan", required=True, type=click.Path(exists=True),
+@click.option("--gan", required=True, type=In(exists=True),
               help="Generator checkpoint: GAN or diffusion (run or checkpoint folder); with --runtime onnx, the "
                    "folder `lsgan export-model --onnx` wrote.")
-@click.option("--vae", type=click.Path(exists=True),
+@click.option("--vae", type=In(exists=True),
               help="The VAE whose latents the generator learned (--runtime torch; an ONNX export holds its decoder).")
 @click.option("--runtime", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
               help="torch: the checkpoints; onnx: an exported folder, run by onnxruntime without torch (its noise is "
                    "drawn with numpy, so the same --seed gives other motions than torch's).")
 @click.option("--int8", is_flag=True, help="--runtime onnx: the int8 graphs (an export made with --int8).")
 @click.option("--text", "texts", multiple=True, help="A prompt (repeat for several).")
-@click.option("--prompts", type=click.Path(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
+@click.option("--prompts", type=In(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
 @click.option("--action", "actions", multiple=True, help="An action label, for action-conditioned models (repeatable).")
-@click.option("--timeline", help="One continuous motion from several prompts, longer than the model's clips: a file "
+@click.option("--timeline", type=MaybeIn(), help="One continuous motion from several prompts, longer than the model's clips: a file "
               "of 'prompt#frames' lines, or the same inline separated by ';' ('walk forward#80; turn around#60'). A "
               "value naming an existing file is read as the file; any other value holding '#' is inline.")
 @click.option("--overlap", type=click.IntRange(0), help="--timeline: frames over which consecutive segments are "
@@ -593,12 +708,12 @@ Examples:
 @click.option("--seconds", type=float, help="Length in seconds (instead of --frames).")
 @click.option("--num", default=1, show_default=True, help="Motions per prompt or action.")
 @click.option("--seed", default=0, show_default=True, help="Random seed: the same seed gives the same motions.")
-@click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder (CLIP).")
+@click.option("--text-encoder-path", type=In(exists=True), help="Local weights of the GAN's text encoder (CLIP).")
 @click.option("--batch-size", default=256, show_default=True)
 @click.option("--device", default="auto", show_default=True)
 @click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps (default: the checkpoint's, 50 in MLD).")
 @click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")
-@click.option("-o", "--output", required=True, type=click.Path(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
+@click.option("-o", "--output", required=True, type=Out(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
               "wrote there (never other files).")
 def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, frames, seconds, num, seed,
@@ -710,15 +825,15 @@ Examples:
 \b
 Calling the graphs from Python, C++ or C# without lsgan: docs/deploy.md.
 """)
-@click.argument("run", type=click.Path(exists=True, file_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(), help="Folder for the graphs, tokenizer and manifest.json.")
+@click.argument("run", type=In(exists=True, file_okay=False))
+@click.option("-o", "--output", required=True, type=Out(), help="Folder for the graphs, tokenizer and manifest.json.")
 @click.option("--onnx", "as_onnx", is_flag=True, help="ONNX graphs (the one format so far).")
 @click.option("--int8", is_flag=True, help="Also write a decoder with int8 feed-forward and self-attention "
               "products (dynamic quantisation, per-channel weights; everything else stays fp32) and measure its joint "
               "error against fp32 on 100 fixed motions.")
-@click.option("--vae", type=click.Path(exists=True), help="The GAN's VAE (default: the one its latent cache was "
+@click.option("--vae", type=In(exists=True), help="The GAN's VAE (default: the one its latent cache was "
               "encoded with, as its config.json records).")
-@click.option("--text-encoder-path", type=click.Path(exists=True, file_okay=False),
+@click.option("--text-encoder-path", type=In(exists=True, file_okay=False),
               help="Local MiniLM folder, when the GAN was trained with one (default: the packaged weights).")
 @click.option("--opset", default=18, show_default=True, type=click.IntRange(18), help="ONNX opset (18 or later).")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, replacing only files lsgan wrote there.")
@@ -760,13 +875,13 @@ Examples:
   lsgan export --bvh walk.npy --rig hero.bvh --joint-map hero_map.json -o walk_hero.bvh
   lsgan export --glb out/ --rig character.bvh --preset bandai -o rig_glb/   # a skinned armature of your rig
 """)
-@click.argument("input", type=click.Path(exists=True))
+@click.argument("input", type=In(exists=True))
 @click.option("--glb", "as_glb", is_flag=True, help="Animated glTF binary: named joint nodes, a visible skeleton, one animation.")
 @click.option("--bvh", "as_bvh", is_flag=True, help="BVH on the 22-joint skeleton (centimetres, ZYX channels).")
 @click.option("--gif", "as_gif", is_flag=True, help="Stick-figure preview with ground grid, root path and caption.")
 @click.option("--mp4", "as_mp4", is_flag=True, help="The --gif preview as an H.264 MP4 (plays in browsers and QuickTime).")
 @click.option("--title", help="--gif/--mp4: the title (default: the prompt from a generate manifest, else the file name).")
-@click.option("--body-model", type=click.Path(), help="--glb: fit this SMPL/SMPL-H/SMPL-X model (file or folder, "
+@click.option("--body-model", type=In(), help="--glb: fit this SMPL/SMPL-H/SMPL-X model (file or folder, "
               "smplx layout) and write one skinned body mesh, plus the fitted poses/trans/betas as .npz.")
 @click.option("--gender", default="neutral", show_default=True, type=click.Choice(["neutral", "male", "female"]),
               help="--body-model: which model file to use.")
@@ -775,13 +890,13 @@ Examples:
 @click.option("--fit-iterations", default=100, show_default=True, type=click.IntRange(1),
               help="--body-model: L-BFGS iterations of the batched pose refinement.")
 @click.option("--fps", default=20.0, show_default=True, help="Frame rate written in the file.")
-@click.option("--rig", type=click.Path(exists=True, dir_okay=False), help="--bvh/--glb: write the motion on this "
+@click.option("--rig", type=In(exists=True, dir_okay=False), help="--bvh/--glb: write the motion on this "
               "BVH character's skeleton by IK (BVH: its hierarchy, rest offsets, channel order and units; GLB: its "
               "hierarchy as a skinned armature in metres).")
-@click.option("--joint-map", type=click.Path(exists=True, dir_okay=False),
+@click.option("--joint-map", type=In(exists=True, dir_okay=False),
               help="--rig: the JSON joint map naming the rig's joint for each SMPL joint (the importer's format).")
 @click.option("--preset", type=click.Choice(["bandai", "cmu", "mixamo"]), help="--rig: a built-in joint map.")
-@click.option("-o", "--output", required=True, type=click.Path(), help="Output file, or folder when INPUT holds several motions.")
+@click.option("-o", "--output", required=True, type=Out(), help="Output file, or folder when INPUT holds several motions.")
 @click.option("--force", is_flag=True, help="Replace existing outputs that lsgan wrote (never other files).")
 @click.option("--fix-feet/--no-fix-feet", default=None, help="Hold each foot still while in contact, by IK on the "
               "leg only. Default: on for generated motions (the contacts of their features); --fix-feet on a plain "
@@ -838,11 +953,11 @@ Examples:
   lsgan evaluate ... --evaluator ~/t2m-official     # the official T2M evaluator (finest.tar + GloVe + meta)
   lsgan evaluate ... --fid-reference same           # FID as MLD computes it (default: T2M's separate pass)
 """)
-@click.option("--gan", "models", multiple=True, metavar="[NAME=]PATH",
+@click.option("--gan", "models", multiple=True, type=NamedIn(),
               help="A generator checkpoint (GAN or diffusion); repeat to compare several in one table.")
-@click.option("--vae", required=True, type=click.Path(exists=True), help="The VAE the generators decode with.")
-@click.option("--data", required=True, type=click.Path(exists=True), help="Shard with the evaluation split.")
-@click.option("--evaluator", type=click.Path(exists=True),
+@click.option("--vae", required=True, type=In(exists=True), help="The VAE the generators decode with.")
+@click.option("--data", required=True, type=In(exists=True), help="Shard with the evaluation split.")
+@click.option("--evaluator", type=In(exists=True),
               help="Text-motion evaluator (train-evaluator run or official T2M folder); the action classifier with --action.")
 @click.option("--split", default="test", show_default=True)
 @click.option("--replications", default=None, type=click.IntRange(1), help="[default: 20; 1 with --vae-only]")
@@ -860,7 +975,7 @@ Examples:
                    "that gave their captions and lengths (MLD).  [default: separate]")
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="auto", show_default=True)
-@click.option("-o", "--output", required=True, type=click.Path(), help="Writes OUTPUT.md and OUTPUT.json.")
+@click.option("-o", "--output", required=True, type=Out(), help="Writes OUTPUT.md and OUTPUT.json.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT.md/.json that lsgan wrote (never other files).")
 def evaluate(models, vae, data, evaluator, split, replications, mm_captions, mm_samples, min_frames, max_frames,
              samples, steps, guidance, vae_only, action_table, fid_reference, seed, device, output, force) -> None:
@@ -911,15 +1026,15 @@ Examples:
   lsgan bench --json bench.json --steps 50 --frames 196
   lsgan bench --gan runs/gan --diffusion runs/diffusion --vae runs/vae   # your checkpoints
 """)
-@click.option("--gan", "gans", multiple=True, type=click.Path(exists=True), help="GAN checkpoint(s) instead of paper-sized ones.")
-@click.option("--diffusion", type=click.Path(exists=True), help="Diffusion checkpoint instead of a paper-sized denoiser.")
-@click.option("--vae", type=click.Path(exists=True), help="VAE checkpoint for decoding (default: paper-sized).")
+@click.option("--gan", "gans", multiple=True, type=In(exists=True), help="GAN checkpoint(s) instead of paper-sized ones.")
+@click.option("--diffusion", type=In(exists=True), help="Diffusion checkpoint instead of a paper-sized denoiser.")
+@click.option("--vae", type=In(exists=True), help="VAE checkpoint for decoding (default: paper-sized).")
 @click.option("--steps", default=50, show_default=True, help="DDIM steps of the denoiser.")
 @click.option("--guidance", default=7.5, show_default=True, help="Classifier-free guidance (2 passes per step).")
 @click.option("--frames", default=120, show_default=True, help="Motion length decoded per sample (20 fps).")
 @click.option("--repeats", default=3, show_default=True, help="Timed runs per figure (median).")
 @click.option("--device", "devices", multiple=True, help="cpu, cuda (default: cpu, and cuda when present).")
-@click.option("--json", "json_out", type=click.Path(), help="Write the rows as JSON.")
+@click.option("--json", "json_out", type=Out(), help="Write the rows as JSON.")
 @click.option("--force", is_flag=True, help="Replace a --json file that lsgan wrote (never another file).")
 def bench(gans, diffusion, vae, steps, guidance, frames, repeats, devices, json_out, force) -> None:
     """FLOPs per clip and per 2048 clips (generator or denoiser alone; end to end with the text encoder and VAE
@@ -948,15 +1063,15 @@ Examples:
   lsgan plot-latents --cache bandai-cache.h5 --gan runs/bandai-gan -o figures/latents.png
   lsgan plot-latents --cache bandai-cache.h5 --gan runs/bandai-diffusion --per-class 100 -o diffusion.png
 """)
-@click.option("--cache", required=True, type=click.Path(exists=True), help="Latent cache (encode-latents).")
-@click.option("--gan", "model", required=True, type=click.Path(exists=True), help="GAN or diffusion checkpoint.")
+@click.option("--cache", required=True, type=In(exists=True), help="Latent cache (encode-latents).")
+@click.option("--gan", "model", required=True, type=In(exists=True), help="GAN or diffusion checkpoint.")
 @click.option("--split", default="test", show_default=True)
 @click.option("--per-class", default=50, show_default=True, help="Clips per action.")
 @click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps.")
 @click.option("--guidance", type=float, help="Diffusion: guidance scale.")
 @click.option("--seed", default=0, show_default=True)
 @click.option("--device", default="auto", show_default=True)
-@click.option("-o", "--output", required=True, type=click.Path(), help="PNG file.")
+@click.option("-o", "--output", required=True, type=Out(), help="PNG file.")
 @click.option("--force", is_flag=True, help="Replace an existing PNG that lsgan wrote (never another file).")
 def plot_latents_cmd(cache, model, split, per_class, steps, guidance, seed, device, output, force) -> None:
     """t-SNE of real and generated latents coloured by action (the paper's Figure 4), as PNG."""
@@ -983,9 +1098,9 @@ Examples:
 The API (endpoints, limits, errors): docs/api.md, and /docs on the running server. SIGTERM finishes the requests
 in flight and exits 0.
 """)
-@click.option("--gan", type=click.Path(exists=True), help="GAN checkpoint (run or checkpoint folder); with --vae.")
-@click.option("--vae", type=click.Path(exists=True), help="The VAE whose latents the GAN learned.")
-@click.option("--model", type=click.Path(exists=True, file_okay=False),
+@click.option("--gan", type=In(exists=True), help="GAN checkpoint (run or checkpoint folder); with --vae.")
+@click.option("--vae", type=In(exists=True), help="The VAE whose latents the GAN learned.")
+@click.option("--model", type=In(exists=True, file_okay=False),
               help="Instead of --gan/--vae: a folder `lsgan export-model --onnx` wrote (runs without torch's models).")
 @click.option("--int8", is_flag=True, help="--model: the int8 decoder (an export made with --int8).")
 @click.option("--host", default="127.0.0.1", show_default=True,
@@ -994,7 +1109,7 @@ in flight and exits 0.
 @click.option("--api-key", envvar="LSGAN_API_KEY", show_envvar=True,
               help="Require this key on /v1 (Authorization: Bearer KEY or X-API-Key); the page and /healthz stay open.")
 @click.option("--device", default="auto", show_default=True, help="--gan/--vae: auto, cpu, cuda or cuda:N.")
-@click.option("--text-encoder-path", type=click.Path(exists=True), help="Local weights of the GAN's text encoder.")
+@click.option("--text-encoder-path", type=In(exists=True), help="Local weights of the GAN's text encoder.")
 @click.option("--text-cache", default=1024, show_default=True, type=click.IntRange(0),
               help="Prompt embeddings kept across requests (0: none).")
 @click.option("--workers", type=click.IntRange(1),

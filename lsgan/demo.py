@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import sys
 import time
 import uuid
@@ -37,7 +36,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from lsgan import __version__
+from lsgan import __version__, outputs
 from lsgan.io import atomic_file, atomic_folder
 
 SCALE_ENV = "LSGAN_DEMO_SCALE"
@@ -228,8 +227,8 @@ class _Stages:
 
 
 def _prepare_run_folder(run: Path, inputs: dict) -> bool:
-    """Keep ``run`` (to resume) only when it was started on the same inputs; returns whether there is a
-    checkpoint to resume from."""
+    """Keep ``run`` (to resume) only when it was started on the same inputs, else clear lsgan's files in it;
+    returns whether there is a checkpoint to resume from."""
     tag = run / "demo-inputs.json"
     if run.exists():
         try:
@@ -237,12 +236,24 @@ def _prepare_run_folder(run: Path, inputs: dict) -> bool:
         except (FileNotFoundError, json.JSONDecodeError):
             same = False
         if not same:
-            shutil.rmtree(run)
-    if not run.exists():
-        run.mkdir(parents=True)
+            outputs.clear_ours(run)
+    if not tag.exists():
         with atomic_file(tag, "w", encoding="utf-8") as fh:
             json.dump(inputs, fh)
     return (run / "last" / "config.json").exists()
+
+
+def _clear_demo(out: Path) -> None:
+    """``--fresh``: remove what the demo wrote in ``out`` (its own files, by the registry), nothing else."""
+    for name in CONTENTS:
+        p = out / name
+        if p.is_dir() and not p.is_symlink() and not outputs.is_ours(p):
+            outputs.clear_ours(p)
+        if outputs.is_ours(p) or p.is_dir():
+            try:
+                outputs.remove(p)
+            except outputs.OutputError:
+                pass  # a folder still holding the user's files: it stays, with them
 
 
 def _check_folder(out: Path, settings: DemoSettings, fresh: bool) -> None:
@@ -251,12 +262,7 @@ def _check_folder(out: Path, settings: DemoSettings, fresh: bool) -> None:
     if path.exists():
         old = json.loads(path.read_text())
         if fresh:
-            for name in CONTENTS:
-                p = out / name
-                if p.is_dir():
-                    shutil.rmtree(p)
-                elif p.exists():
-                    p.unlink()
+            _clear_demo(out)
         elif old.get("settings") != mine["settings"]:
             o = old.get("settings", {})
             raise ValueError(

@@ -49,14 +49,33 @@ def load_generator(path: str | os.PathLike, device: str | torch.device = "cpu", 
 
     kind = read_meta(path, prefer).get("kind")
     if kind == "gan":
-        from lsgan.models.gan import load_gan
+        from lsgan.models.gan import load_gan as load
+    elif kind == "diffusion":
+        from lsgan.models.diffusion import load_diffusion as load
+    else:
+        raise ValueError(f"{path}: holds a {kind!r} checkpoint, not a generator (GAN or diffusion: {GENERATOR_KINDS})")
+    model, meta = load(path, device=device, prefer=prefer)
+    check_generator_extra(path, prefer, model, meta)
+    return model, meta
 
-        return load_gan(path, device=device, prefer=prefer)
-    if kind == "diffusion":
-        from lsgan.models.diffusion import load_diffusion
 
-        return load_diffusion(path, device=device, prefer=prefer)
-    raise ValueError(f"{path}: holds a {kind!r} checkpoint, not a generator (GAN or diffusion: {GENERATOR_KINDS})")
+def check_generator_extra(path: str | os.PathLike, prefer: str, model, meta: dict) -> None:
+    """The "extra" of a generator's config.json as generation reads it (the latent statistics, the text encoder's
+    name, the action labels), or an error naming that file: a damaged one must not fail later, or decode wrongly."""
+    from lsgan.errors import reading
+    from lsgan.models.checkpoint import CONFIG, resolve
+
+    with reading(resolve(path, prefer) / CONFIG, "a generator's config this lsgan version reads"):
+        extra = meta.get("extra", {})
+        if not isinstance(extra, dict):
+            raise TypeError(f"'extra' is a {type(extra).__name__}, not an object")
+        for key in ("latent_mean", "latent_std"):
+            shape = np.asarray(extra[key], np.float32).shape
+            if shape != (model.config.latent_dim,):
+                raise ValueError(f"{key!r} holds {shape} values, not the latent size ({model.config.latent_dim},)")
+        if not isinstance(extra.get("text_encoder", ""), str) or not all(
+                isinstance(a, str) for a in extra.get("action_names", [])):
+            raise TypeError("'text_encoder' or 'action_names' is not text")
 
 
 @dataclass

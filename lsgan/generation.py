@@ -85,8 +85,12 @@ class Generation:
 
 def read_prompts(path: str | os.PathLike, default_frames: int) -> list[Request]:
     """One prompt per line, optionally ``prompt#frames``; blank lines and lines starting with '//' are skipped."""
+    from lsgan.errors import reading
+
     out = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
+    with reading(path, "a prompts file of UTF-8 text"):
+        text = Path(path).read_text(encoding="utf-8")
+    for line in text.splitlines():
         line = line.strip()
         if not line or line.startswith("//"):
             continue

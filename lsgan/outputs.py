@@ -1,34 +1,52 @@
-"""Which files are lsgan's: nothing of the user's is replaced or deleted, even with ``--force``.
+"""Which files are lsgan's, and the one place that deletes, renames into place or sweeps them.
 
-Every file or folder lsgan writes atomically is fingerprinted in a small registry beside it,
-``.lsgan-outputs.json`` in the same folder (a file by size and SHA-256; a folder by the names, sizes and
-modification times of everything in it). A path is lsgan's only while it still matches its entry: a file
-the user edited, or a folder they added to, is theirs again. Commands claim their outputs before writing:
+Every file or folder lsgan writes is fingerprinted in a small registry beside it, ``.lsgan-outputs.json`` in
+the same folder: a file by its size and SHA-256, a folder by the names, kinds, sizes and SHA-256 of everything
+in it. A path is lsgan's only while its name is a plain name listed in the registry of its own folder and its
+content still matches the entry: a file the user edited, or a folder they added to, is theirs again, and a
+registry naming ``../x`` or ``/abs`` names nothing.
 
-* an output that does not exist (or an empty folder) is free;
-* an existing one is refused unless ``force``; with ``force`` only lsgan's own entries are replaced or
-  cleared, and anything else is named and left alone;
-* an output that is, holds or lies inside one of the command's inputs is refused outright.
+By construction (tests/test_outputs.py walks the package's syntax tree to keep it so):
 
-Temporary files of an interrupted write (``.NAME.<pid>.*.tmp`` and folders ``.NAME.<pid>.*``) are swept
-when their process is gone.
+* :func:`remove` is the only code in lsgan that deletes a file or folder. It removes an entry that matches its
+  record, a temporary whose recorded process is gone, or an empty folder lsgan made; anything else is refused
+  with one line naming it.
+* :func:`publish` is the only code that renames into place. It refuses to replace anything that is not lsgan's,
+  whatever its caller checked before, and records the new content before the rename (as ``pending``) and after
+  it, so that a kill at any instant leaves a path that is still known as lsgan's.
+* Temporaries (:func:`temp_file`, :func:`temp_folder`) are recorded when made, with their process and inode;
+  :func:`sweep_temps` removes only recorded ones whose process is gone.
+
+Commands claim their outputs before writing: an output that does not exist (or an empty folder) is free; an
+existing one is refused unless ``force``, and with ``force`` only lsgan's own entries are replaced or cleared;
+an output that is, holds or lies inside one of the command's inputs is refused outright.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import os
-import re
+import secrets
 import shutil
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
+from lsgan.faults import fault_point
+
+try:
+    import fcntl
+except ImportError:  # not on Windows: registries are then not locked against concurrent lsgan processes
+    fcntl = None
+
 REGISTRY = ".lsgan-outputs.json"
+SMALL_FOLDER = 64  # a folder of up to this many entries is recorded file by file, so a refusal can name the file
+_REGISTRY_TMP = REGISTRY + ".tmp"  # written under the folder's lock only, so one name serves every writer
 
 
 class OutputError(ValueError):
-    """An output that may not be written: the message names it and says why."""
+    """An output that may not be written or removed: the message names it and says why."""
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -40,8 +58,33 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def _tree(folder: Path) -> str:
-    """A fingerprint of everything under ``folder``: relative names, sizes and modification times."""
+def plain_name(name: str) -> bool:
+    """A name of an entry in its own folder: no separator, not '.', '..' or empty, not the registry."""
+    return name not in ("", ".", "..", REGISTRY, _REGISTRY_TMP) and not any(c in name for c in "/\\\0")
+
+
+def _listing(folder: Path) -> dict[str, str]:
+    """Everything under ``folder`` (links not followed): relative name -> kind, size and SHA-256."""
+    found = {}
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            p = Path(root) / name
+            rel = p.relative_to(folder).as_posix()
+            if p.is_symlink():
+                found[rel] = f"link {os.readlink(p)}"
+            elif p.is_dir():
+                found[rel] = "dir"
+            else:
+                found[rel] = f"file {p.stat().st_size} {file_sha256(p)}"
+    return found
+
+
+def _content(listing: dict[str, str]) -> str:
+    return hashlib.sha256("".join(f"{k}|{v}\n" for k, v in sorted(listing.items())).encode()).hexdigest()
+
+
+def _legacy_tree(folder: Path) -> str:
+    """The folder fingerprint of earlier registries, so that their runs still resume."""
     h = hashlib.sha256()
     for p in sorted(folder.rglob("*")):
         st = p.lstat()
@@ -49,32 +92,139 @@ def _tree(folder: Path) -> str:
     return h.hexdigest()
 
 
-def fingerprint(path: Path) -> dict:
+def fingerprint(path: Path) -> dict | None:
+    """What a registry entry records of ``path``; None for a link, a missing path or a special file."""
+    if path.is_symlink() or not path.exists():
+        return None
     if path.is_dir():
-        return {"dir": True, "tree": _tree(path)}
-    return {"size": path.stat().st_size, "sha256": file_sha256(path)}
+        listing = _listing(path)
+        fp = {"dir": True, "content": _content(listing)}
+        return {**fp, "files": listing} if len(listing) <= SMALL_FOLDER else fp
+    if path.is_file():
+        return {"size": path.stat().st_size, "sha256": file_sha256(path)}
+    return None
 
 
-def _read_registry(folder: Path) -> dict:
+def _matches(entry: dict | None, path: Path) -> bool:
+    """Whether ``path`` is what ``entry`` recorded: its content, or the content it was being replaced with."""
+    if not entry or entry.get("temp") or entry.get("folder"):
+        return False
+    if "tree" in entry:  # a folder recorded before content hashes: names, sizes and modification times
+        return path.is_dir() and not path.is_symlink() and entry["tree"] == _legacy_tree(path)
+    fp = fingerprint(path)
+    if fp is None:
+        return False
+    return any(_same(fp, e) for e in (entry, entry.get("pending")))
+
+
+def _same(fp: dict, entry: object) -> bool:
+    keys = ("dir", "content") if fp.get("dir") else ("size", "sha256")
+    return isinstance(entry, dict) and all(fp.get(k) == entry.get(k) for k in keys)
+
+
+def why_not_ours(path: str | os.PathLike) -> str:
+    """In words, why ``path`` is not lsgan's (for refusals): not recorded, or which file changed."""
+    path = Path(path)
+    entry = _read_entries(path.parent).get(path.name) if plain_name(path.name) else None
+    if not entry or entry.get("temp") or entry.get("folder"):
+        return "lsgan has no record of writing it"
+    before, now = entry.get("files"), fingerprint(path) or {}
+    if isinstance(before, dict) and isinstance(now.get("files"), dict):
+        for rel in sorted(set(before) | set(now["files"])):
+            if before.get(rel) != now["files"].get(rel):
+                how = "added" if rel not in before else "removed" if rel not in now["files"] else "changed"
+                return f"{rel} was {how} since lsgan wrote it"
+    return "it was changed since lsgan wrote it"
+
+
+def made_folder(path: str | os.PathLike) -> bool:
+    """Whether lsgan made the folder ``path`` (:func:`make_folder`); what it holds may be anyone's."""
+    path = Path(path)
+    return plain_name(path.name) and _made_folder(_read_entries(path.parent).get(path.name) or {}, path)
+
+
+def _made_folder(entry: dict, path: Path) -> bool:
+    """A folder lsgan made (:func:`make_folder`): the same folder (inode), whatever it holds now."""
+    try:
+        st = path.lstat()
+    except OSError:
+        return False
+    return bool(entry.get("folder")) and path.is_dir() and not path.is_symlink() and st.st_ino == entry.get("ino")
+
+
+# ----------------------------------------------------------------------------------------------- registry
+
+
+def _read_entries(folder: Path) -> dict:
+    """The registry's entries with plain names only; a missing or unreadable registry lists nothing."""
     try:
         data = json.loads((folder / REGISTRY).read_text(encoding="utf-8"))
-        return data if isinstance(data, dict) and isinstance(data.get("entries"), dict) else {"entries": {}}
     except (OSError, ValueError):
-        return {"entries": {}}
+        return {}
+    entries = data.get("entries") if isinstance(data, dict) else None
+    if not isinstance(entries, dict):
+        return {}
+    return {k: v for k, v in entries.items() if isinstance(k, str) and plain_name(k) and isinstance(v, dict)}
 
 
-def _write_registry(folder: Path, data: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f"{REGISTRY}.{os.getpid()}.", suffix=".tmp", dir=folder)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+def _is_registry_file(path: Path, partial: bool = False) -> bool:
+    """Whether ``path`` is a plain file holding a registry (so lsgan may replace it); ``partial``: or the start
+    of one, as a write killed midway leaves it."""
+    if path.is_symlink() or not path.is_file():
+        return False
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=0, sort_keys=True)
-        os.replace(tmp, folder / REGISTRY)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        text = path.read_text(encoding="utf-8")
+        if partial and (text == "" or text.startswith('{\n"entries"')):
+            return True
+        data = json.loads(text)
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("entries"), dict)
+
+
+class _Registry:
+    """One folder's registry, held under an exclusive lock of the folder (see :func:`_registry`)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.entries = _read_entries(folder)
+        self._saved = json.dumps(self.entries, sort_keys=True)
+
+    def save(self) -> None:
+        """Write the registry through ``.lsgan-outputs.json.tmp`` and a rename, when it changed."""
+        text = json.dumps({"entries": self.entries}, indent=0, sort_keys=True)
+        if json.dumps(self.entries, sort_keys=True) == self._saved:
+            return
+        reg, tmp = self.folder / REGISTRY, self.folder / _REGISTRY_TMP
+        for p in (reg, tmp):
+            if (p.exists() or p.is_symlink()) and not _is_registry_file(p, partial=p == tmp):
+                raise OutputError(f"{p}: is not lsgan's registry of outputs; move it away (lsgan records what it "
+                                  "writes in that file)")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(text)
+            os.replace(tmp, reg)
+        except OSError as e:  # name the registry (a full disk or a read-only folder says nothing of it)
+            e.filename = e.filename or str(reg)
+            tmp.unlink(missing_ok=True)  # this process's own, truncated under the lock
+            raise
+        self._saved = json.dumps(self.entries, sort_keys=True)
+
+
+@contextmanager
+def _registry(folder: Path) -> Iterator[_Registry]:
+    """``folder``'s registry, locked against other lsgan processes; saved when the block ends without error.
+    Never nested: a second lock on the same folder would wait for the first."""
+    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        reg = _Registry(folder)
+        yield reg
+        reg.save()
+    finally:
+        os.close(fd)
 
 
 def record(*paths: str | os.PathLike) -> None:
@@ -83,37 +233,261 @@ def record(*paths: str | os.PathLike) -> None:
     for p in map(Path, paths):
         by_folder.setdefault(p.parent, []).append(p)
     for folder, items in by_folder.items():
-        data = _read_registry(folder)
-        for p in items:
-            if p.exists():
-                data["entries"][p.name] = fingerprint(p)
-        _write_registry(folder, data)
+        with _registry(folder) as reg:
+            for p in items:
+                fp = fingerprint(p)
+                if fp is not None and plain_name(p.name):
+                    reg.entries[p.name] = fp
 
 
 def record_tree(folder: str | os.PathLike) -> None:
     """Note every file under ``folder`` (one registry per sub-folder), e.g. a folder built whole."""
     folder = Path(folder)
-    for sub in [folder, *sorted(p for p in folder.rglob("*") if p.is_dir())]:
+    for sub in [folder, *sorted(p for p in folder.rglob("*") if p.is_dir() and not p.is_symlink())]:
         files = [p for p in sub.iterdir() if p.name != REGISTRY]
         if files:
             record(*files)
 
 
-def forget(path: Path) -> None:
-    data = _read_registry(path.parent)
-    if data["entries"].pop(path.name, None) is not None:
-        _write_registry(path.parent, data)
+def make_folder(path: str | os.PathLike) -> Path:
+    """Make the folder ``path`` and any missing parents, recording each new one as lsgan's in its parent's
+    registry (so that it can be removed once empty); an existing folder is used as it is."""
+    path = Path(path)
+    if path.is_dir():
+        return path
+    if path.exists() or path.is_symlink():
+        raise OutputError(f"{path}: cannot write into it: exists and is not a folder")
+    make_folder(path.parent)
+    try:
+        path.mkdir()
+    except FileExistsError:  # another process made it meanwhile
+        if path.is_dir():
+            return path
+        raise
+    with _registry(path.parent) as reg:
+        reg.entries[path.name] = {"folder": True, "ino": path.lstat().st_ino}
+    return path
 
 
 def is_ours(path: str | os.PathLike) -> bool:
     """Whether ``path`` is still exactly what lsgan wrote there."""
     path = Path(path)
-    entry = _read_registry(path.parent)["entries"].get(path.name)
-    if entry is None or not path.exists():
+    return plain_name(path.name) and _matches(_read_entries(path.parent).get(path.name), path)
+
+
+# ------------------------------------------------------------------------------------ the one deleting place
+
+
+def _delete(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink()
+
+
+def _only_registry(folder: Path) -> bool:
+    """Whether a folder holds nothing but its registry, and that registry lists nothing that still exists."""
+    names = [p.name for p in folder.iterdir()]
+    if any(n != REGISTRY for n in names):
         return False
-    if entry.get("dir"):
-        return path.is_dir() and entry.get("tree") == _tree(path)
-    return path.is_file() and entry.get("size") == path.stat().st_size and entry.get("sha256") == file_sha256(path)
+    return not any((folder / n).exists() or (folder / n).is_symlink() for n in _read_entries(folder))
+
+
+def _removable(entry: dict | None, path: Path) -> bool:
+    if entry is None:
+        return False
+    if entry.get("folder"):
+        return _made_folder(entry, path) and _only_registry(path)
+    if entry.get("temp"):
+        return _own_temp(entry, path)
+    return _matches(entry, path)
+
+
+def _own_temp(entry: dict, path: Path) -> bool:
+    try:
+        return path.lstat().st_ino == entry.get("ino") and not path.is_symlink()
+    except OSError:
+        return False
+
+
+def remove(path: str | os.PathLike, *, missing_ok: bool = False) -> None:
+    """Delete ``path`` if it is lsgan's: an entry of its folder's registry, under a plain name, whose content
+    still matches; a recorded temporary; or a folder lsgan made that is now empty. Anything else is refused
+    (OutputError naming it). This is the only function in lsgan that deletes."""
+    path = Path(path)
+    if missing_ok and not (path.exists() or path.is_symlink()):
+        return
+    if not plain_name(path.name) or not path.parent.is_dir():
+        raise OutputError(f"{path}: not removed: lsgan removes only entries of its own registry")
+    with _registry(path.parent) as reg:
+        entry = reg.entries.get(path.name)
+        if not _removable(entry, path):
+            raise OutputError(f"{path}: not removed: it is not something lsgan wrote (or it was changed since)")
+        _remove_entry(reg, path)
+
+
+def _remove_entry(reg: _Registry, path: Path) -> None:
+    """Delete a checked entry and drop it from the registry (saved when the caller's block ends)."""
+    if reg.entries[path.name].get("folder"):
+        (path / REGISTRY).unlink(missing_ok=True)
+        path.rmdir()
+    else:
+        _delete(path)
+    del reg.entries[path.name]
+
+
+# ------------------------------------------------------------------------------------------------ temporaries
+
+
+def _alive(pid: object) -> bool:
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    if pid == os.getpid():
+        return True  # this process's own temporaries: removed by the code that made them
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_temps(folder: str | os.PathLike) -> None:
+    """Remove the recorded temporaries in ``folder`` whose process is gone; a folder that was being replaced
+    when its process died is put back instead, when nothing took its place."""
+    folder = Path(folder)
+    if not folder.is_dir() or not (folder / REGISTRY).is_file():
+        return
+    with _registry(folder) as reg:
+        for name, entry in list(reg.entries.items()):
+            if not entry.get("temp") or _alive(entry.get("pid")):
+                continue
+            p = folder / name
+            if _own_temp(entry, p):
+                back = entry.get("restore")
+                if isinstance(back, str) and plain_name(back) and not (folder / back).exists():
+                    os.rename(p, folder / back)
+                    reg.entries[back] = {k: v for k, v in (reg.entries.get(back) or {}).items() if k != "pending"}
+                else:
+                    _delete(p)
+            del reg.entries[name]
+
+
+def _temp_entry(path: Path, **more) -> dict:
+    return {"temp": True, "pid": os.getpid(), "ino": path.lstat().st_ino, **more}
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def temp_file(path: str | os.PathLike) -> tuple[int, str]:
+    """A new temporary file beside ``path`` (same filesystem, so the rename is atomic), recorded as a
+    temporary of this process, with the usual permissions; an open descriptor and its name."""
+    path = Path(path)
+    make_folder(path.parent)
+    sweep_temps(path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
+    os.chmod(tmp, 0o666 & ~_umask())
+    with _registry(path.parent) as reg:
+        reg.entries[Path(tmp).name] = _temp_entry(Path(tmp))
+    return fd, tmp
+
+
+def temp_folder(target: str | os.PathLike) -> Path:
+    """A new temporary folder beside ``target``, recorded as a temporary of this process."""
+    target = Path(target)
+    make_folder(target.parent)
+    sweep_temps(target.parent)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.{os.getpid()}.", dir=target.parent))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private (0700); the finished folder gets the usual mode
+    with _registry(target.parent) as reg:
+        reg.entries[tmp.name] = _temp_entry(tmp)
+    return tmp
+
+
+def discard_temp(tmp: str | os.PathLike) -> None:
+    """Remove a temporary of this process (after a failed write); a path not recorded as one is left alone."""
+    tmp = Path(tmp)
+    if not (tmp.exists() or tmp.is_symlink()) or not tmp.parent.is_dir():
+        return
+    try:
+        with _registry(tmp.parent) as reg:
+            entry = reg.entries.get(tmp.name)
+            if entry is not None and entry.get("temp") and _own_temp(entry, tmp):
+                _remove_entry(reg, tmp)
+    except OSError:
+        pass  # e.g. a full disk: the temporary is gone already, and the next sweep drops its stale entry
+
+
+# ----------------------------------------------------------------------------------- the one publishing place
+
+
+def _replaceable(entry: dict | None, path: Path) -> bool:
+    """Whether ``path`` may be replaced: absent, lsgan's, or a folder holding nothing but its registry."""
+    if not (path.exists() or path.is_symlink()):
+        return True
+    if path.is_dir() and not path.is_symlink() and _only_registry(path):
+        return True
+    return _matches(entry, path)
+
+
+def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Move a finished temporary file or folder into place at ``path`` and record it as lsgan's.
+
+    Refuses (OutputError) to replace what is not lsgan's. A folder in the way is first renamed aside (recorded
+    as a temporary to put back), then removed once the new one is in place."""
+    tmp, path = Path(tmp), Path(path)
+    if tmp.parent.resolve() != path.parent.resolve() or not plain_name(path.name):
+        raise OutputError(f"{path}: cannot write: its temporary is not beside it")
+    fp = fingerprint(tmp)
+    with _registry(path.parent) as reg:
+        entry = reg.entries.get(path.name)
+        if not _replaceable(entry, path):
+            raise OutputError(f"{path}: exists and is not something lsgan wrote (or it was changed since); "
+                              "not replaced")
+        ours_now = path.exists() and _matches(entry, path)
+        current = {k: v for k, v in entry.items() if k != "pending"} if ours_now else {}
+        reg.entries[path.name] = {**current, "pending": fp}
+        old = None
+        if path.is_dir() and not path.is_symlink():  # renamed aside first: a folder cannot replace a full one
+            old = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.old")
+            reg.entries[old.name] = _temp_entry(path, restore=path.name)  # a rename keeps the inode
+        reg.save()
+        fault_point("publish.recorded")
+        try:
+            if old is not None:
+                os.rename(path, old)
+                fault_point("publish.aside")
+            os.replace(tmp, path)
+        except BaseException:
+            if old is not None and old.exists() and not path.exists():
+                os.rename(old, path)
+            raise
+        fault_point("publish.placed")
+        reg.entries[path.name] = fp
+        reg.entries.pop(tmp.name, None)
+        reg.save()
+        if old is not None:
+            _remove_entry(reg, old)
+
+
+def replace_by(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (a recorded temporary, then :func:`publish`)."""
+    fd, tmp = temp_file(path)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        publish(tmp, path)
+    except BaseException:
+        discard_temp(tmp)
+        raise
+
+
+# -------------------------------------------------------------------------------------------------- claiming
 
 
 def _inside(a: Path, b: Path) -> bool:
@@ -121,8 +495,9 @@ def _inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
-def check_inputs(output: Path, inputs: Iterable[str | os.PathLike]) -> None:
+def check_inputs(output: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:
     """Refuse an output that is an input, holds one, or lies inside an input folder."""
+    output = Path(output)
     out = output.resolve()
     for i in inputs:
         i = Path(i).resolve()
@@ -133,35 +508,6 @@ def check_inputs(output: Path, inputs: Iterable[str | os.PathLike]) -> None:
             raise OutputError(f"{output}: lies inside the input folder {i}; choose an output outside the inputs")
 
 
-def sweep_temps(path: Path) -> None:
-    """Remove temporaries of ``path`` left by a killed lsgan process (never those of a live one)."""
-    sweep_folder_temps(path.parent, path.name)
-
-
-def sweep_folder_temps(folder: Path, name: str | None = None) -> None:
-    """Remove the temporaries in ``folder`` (of ``name`` only, when given) whose lsgan process is gone."""
-    if not folder.is_dir():
-        return
-    # mkstemp/mkdtemp names (8 random characters) and atomic_folder's ".old"; nothing else matches
-    pattern = re.compile(rf"^\.{re.escape(name) if name else '.+?'}\.(\d+)\.([a-z0-9_]{{8}}(\.tmp)?|old)$")
-    for p in folder.iterdir():
-        m = pattern.match(p.name)
-        if m and not _alive(int(m.group(1))):
-            shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
-
-
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return False  # our own leftovers from an earlier, interrupted attempt in this process
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> Path:
     """Before writing the file ``path``: refuse what may not be replaced, sweep dead temporaries."""
     path = Path(path)
@@ -170,7 +516,7 @@ def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable
         raise OutputError(f"{path}: cannot write: is a folder (give a file name)")
     if path.parent.exists() and not path.parent.is_dir():
         raise OutputError(f"{path}: cannot write: {path.parent} is not a folder")
-    sweep_temps(path)
+    sweep_temps(path.parent)
     if path.exists() or path.is_symlink():
         if not force:
             raise OutputError(f"{path}: exists; pass --force to replace it (lsgan replaces only files it wrote)")
@@ -183,11 +529,13 @@ def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable
 def foreign(folder: Path) -> list[Path]:
     """Entries of ``folder`` (recursively) that are not lsgan's, shallowest first."""
     out: list[Path] = []
+    entries = _read_entries(folder)
     for p in sorted(folder.iterdir()):
-        if p.name == REGISTRY or is_ours(p):
+        entry = entries.get(p.name)
+        if p.name == REGISTRY or _matches(entry, p):
             continue
         if p.is_dir() and not p.is_symlink():
-            out += foreign(p) if any(p.iterdir()) else []
+            out += foreign(p)
         else:
             out.append(p)
     return out
@@ -204,8 +552,8 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
     check_inputs(path, inputs)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{path}: cannot write: exists and is not a folder")
-    sweep_temps(path)
-    if not path.exists() or not any(p.name != REGISTRY for p in path.iterdir()):
+    sweep_temps(path.parent) if path.parent.is_dir() else None
+    if not path.exists() or _only_registry(path):
         return path
     if whole and is_ours(path):
         if not force:
@@ -223,23 +571,19 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
 
 
 def clear_ours(folder: Path) -> list[Path]:
-    """Delete the entries of ``folder`` that are still exactly what lsgan wrote; returns them."""
-    removed = []
-    data = _read_registry(folder)
-    for name in list(data["entries"]):
-        p = folder / name
-        if is_ours(p):
-            shutil.rmtree(p) if p.is_dir() else p.unlink()
-            removed.append(p)
-        data["entries"].pop(name)
-    for p in folder.iterdir():
-        if p.is_dir() and not p.is_symlink() and (p / REGISTRY).exists():
+    """Delete what in ``folder`` (recursively) is still exactly what lsgan wrote, and the folders lsgan made
+    that are then empty; returns what was removed. Everything else stays."""
+    removed: list[Path] = []
+    for p in sorted(folder.iterdir()):
+        if p.is_dir() and not p.is_symlink() and not is_ours(p):
             removed += clear_ours(p)
-            if not any(q.name != REGISTRY for q in p.iterdir()):
-                (p / REGISTRY).unlink(missing_ok=True)
-                p.rmdir()
-    if data["entries"]:
-        _write_registry(folder, data)
-    else:
-        (folder / REGISTRY).unlink(missing_ok=True)
+    sweep_temps(folder)
+    if not (folder / REGISTRY).is_file():
+        return removed
+    with _registry(folder) as reg:
+        for name, entry in sorted(reg.entries.items()):
+            p = folder / name
+            if not entry.get("temp") and _removable(entry, p):
+                _remove_entry(reg, p)
+                removed.append(p)
     return removed

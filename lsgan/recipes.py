@@ -13,6 +13,8 @@ from typing import Any, TypeVar
 
 import yaml
 
+from lsgan.errors import reading
+
 T = TypeVar("T")
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
@@ -24,7 +26,8 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
         p = RECIPES / f"{p}.yaml"
     if not p.is_file():
         raise FileNotFoundError(f"recipe {path} not found (give a YAML file, or a name from {RECIPES})")
-    data = yaml.safe_load(p.read_text()) or {}
+    with reading(p, "a recipe (YAML text)", also=(yaml.YAMLError,)):
+        data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{p}: a recipe is a mapping of sections (vae:, gan:, diffusion:, ...)")
     return data
@@ -37,8 +40,22 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
     unknown = sorted(set(values) - names)
     if unknown:
         raise ValueError(f"{where or cls.__name__}: unknown key(s) {unknown}; allowed: {sorted(names)}")
+    for f in dataclasses.fields(cls):
+        if f.name in values and not _fits(values[f.name], f.type):
+            raise ValueError(f"recipe key {where or cls.__name__}.{f.name}: {values[f.name]!r} is not "
+                             f"{_KINDS.get(str(f.type), f.type)}")
     return cls(**values)
 
+
+_KINDS = {"int": "a whole number", "float": "a number", "bool": "true or false", "str": "text"}
+
+
+def _fits(value: Any, annotation: Any) -> bool:
+    """Whether a recipe value fits its field's plain annotation (int, float, bool, str); others are not checked."""
+    kind = str(getattr(annotation, "__name__", annotation))
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return {"int": isinstance(value, int) and not isinstance(value, bool), "float": number,
+            "bool": isinstance(value, bool), "str": isinstance(value, str)}.get(kind, True)
 
 def section(recipe: dict[str, Any], name: str) -> dict[str, Any]:
     value = recipe.get(name) or {}

@@ -1,7 +1,9 @@
 """Running the real ``lsgan`` command in a subprocess, and a tiny recipe for a whole pipeline in seconds."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import os
 import subprocess
 import sys
@@ -17,14 +19,16 @@ gan:
 """
 
 
-def lsgan(*args, cwd: Path, env: dict | None = None, fault: str | None = None) -> subprocess.CompletedProcess:
-    """``lsgan ARGS`` on one thread, without the caller's debug or fault settings unless given here."""
+def lsgan(*args, cwd: Path, env: dict | None = None, fault: str | None = None,
+          preexec_fn=None) -> subprocess.CompletedProcess:
+    """``lsgan ARGS`` on one thread, without the caller's debug or fault settings unless given here; ``preexec_fn``
+    runs in the child before lsgan starts (e.g. to set a resource limit)."""
     full_env = {k: v for k, v in os.environ.items() if k not in ("LSGAN_DEBUG", "LSGAN_FAULT")}
     full_env.update({"OMP_NUM_THREADS": "1", **(env or {})})
     if fault:
         full_env["LSGAN_FAULT"] = fault
     return subprocess.run([sys.executable, "-m", "lsgan.cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, env=full_env, timeout=600)
+                          cwd=cwd, env=full_env, timeout=600, preexec_fn=preexec_fn)
 
 
 TINY_PIPELINE = [
@@ -48,3 +52,22 @@ def snapshot(*folders: Path) -> dict[Path, str]:
     """SHA-256 of every file under the folders."""
     return {p: hashlib.sha256(p.read_bytes()).hexdigest()
             for f in folders for p in sorted(f.rglob("*")) if p.is_file()}
+
+
+def run_here(cwd: Path, *args) -> tuple[int, str]:
+    """``lsgan ARGS`` in this process (click's entry point, as the script calls it), in ``cwd``: exit code and
+    stderr. Much faster than :func:`lsgan` for many short commands."""
+    from lsgan.cli import main
+
+    err, here = io.StringIO(), os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                main.main(args=[str(a) for a in args], prog_name="lsgan")
+                code = 0
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        os.chdir(here)
+    return code, err.getvalue()

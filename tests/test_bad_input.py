@@ -7,11 +7,14 @@ or removed (in the row's folder and in the shared tiny pipeline).
 """
 from __future__ import annotations
 
+import contextlib
 import gzip
 import io
 import json
 import os
 import pickle
+import resource
+import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -232,8 +235,11 @@ def copy_run(src: Path, dst: Path) -> Path:
 
 
 def corrupt_state(w: Path, pipe: Path, content: bytes) -> list:
+    from lsgan import outputs
+
     run = copy_run(pipe / "vae", w / "vae")
     (run / "last" / "state.pt").write_bytes(content)
+    outputs.record(run / "last")  # the registry vouches for it (a forged or copied one): the reader must refuse it
     return ["train-vae", "--data", pipe / "synth.h5", "--recipe", pipe / "tiny.yaml", "--out", run, "--resume",
             "--max-steps", 6]
 
@@ -283,12 +289,95 @@ def state_gadget(w: Path, pipe: Path) -> list:
     return corrupt_state(w, pipe, buf.getvalue())
 
 
+def saved_state(w: Path, pipe: Path, edit: Callable[[dict], object]) -> list:
+    """--resume from a copy of the pipeline's VAE run whose state.pt is ``edit(its real state)``, saved by torch."""
+    state = torch.load(pipe / "vae" / "last" / "state.pt", weights_only=True)
+    buf = io.BytesIO()
+    torch.save(edit(state), buf)
+    return corrupt_state(w, pipe, buf.getvalue())
+
+
+def without(d: dict, key: str) -> dict:
+    return {k: v for k, v in d.items() if k != key}
+
+
+def edited_checkpoint(w: Path, pipe: Path, which: str, edit: Callable[[dict], None]) -> list:
+    """generate with a copy of the pipeline's ``which`` run ('gan' or 'vae') whose config.json files were
+    ``edit``-ed in place."""
+    run = copy_run(pipe / which, w / which)
+    for sub in ("best", "last"):
+        meta = json.loads((run / sub / "config.json").read_text())
+        edit(meta)
+        (run / sub / "config.json").write_text(json.dumps(meta))
+    return ["generate", "--gan", run if which == "gan" else pipe / "gan", "--vae", run if which == "vae" else
+            pipe / "vae", "--text", "a person walks", "--frames", 40, "-o", w / "out"]
+
+
+def generate_folder_with_manifest(w: Path, pipe: Path, text: str) -> Path:
+    gen = copy_run(pipe / "gen", w / "gen")
+    (gen / "manifest.json").write_text(text)
+    return gen
+
+
+def written(path: Path, content: bytes) -> Path:
+    path.write_bytes(content)
+    return path
+
+
+def npy_file(w: Path, name: str, array: np.ndarray) -> Path:
+    np.save(w / name, array)
+    return w / name
+
+
+@contextlib.contextmanager
+def small_disk(folder: Path, size: int):
+    """``folder`` as a full disk of ``size`` bytes: a tmpfs mounted there (as root), else, where mounting is not
+    allowed, a file-size limit of ``size`` for the command (EFBIG, the stand-in for a full disk). Yields (the
+    function that sets the limit in the child, or None; the words the error line must say)."""
+    folder.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+                             capture_output=True).returncode == 0
+    try:
+        if mounted:
+            yield None, "disk full"
+        else:
+            yield (lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))), "file too large"
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(folder)], check=True)
+
+
 @dataclass(frozen=True)
 class Case:
     id: str
     args: Callable[[Path, Path], list]  # (row folder, tiny pipeline) -> command-line arguments
     code: int
     phrase: str
+    disk: int = 0  # bytes: ``w/full`` is a disk of this size, full once the command writes more (small_disk)
+
+
+def copied_run(w: Path, pipe: Path, note: str | None = None, extra: dict | None = None) -> Path:
+    """A copy of the pipeline's VAE run in ``w/run`` (with its registry), ``note`` appended by the user to its
+    log.csv, and ``extra`` files of the user's."""
+    run = copy_run(pipe / "vae", w / "run")
+    if note is not None:
+        (run / "log.csv").write_text((run / "log.csv").read_text() + note)
+    for name, text in (extra or {}).items():
+        (run / name).write_text(text)
+    return run
+
+
+def train_into(run: Path, pipe: Path, *flags) -> list:
+    return ["train-vae", "--data", pipe / "synth.h5", "--recipe", pipe / "tiny.yaml", "--out", run, "--max-steps", 2,
+            *flags]
+
+
+def user_run_folder(w: Path, files: dict) -> Path:
+    d = w / "run"
+    d.mkdir()
+    for name, text in files.items():
+        (d / name).write_text(text)
+    return d
 
 
 CASES = [
@@ -315,7 +404,7 @@ CASES = [
     Case("output-lsgan-shard-no-force", existing_lsgan_shard, 1, "pass --force"),
     Case("output-is-folder", lambda w, p: output_is_folder(w), 1, "is a folder"),
     Case("output-under-a-file", lambda w, p: output_under_a_file(w), 1, "is not a folder"),
-    Case("report-user-file", lambda w, p: report_is_user_file(w), 1, "not a report lsgan wrote"),
+    Case("report-user-file", lambda w, p: report_is_user_file(w), 1, "pass --force"),
     Case("staging-user-folder", lambda w, p: staging_is_user_folder(w), 1, "not lsgan's staging folder"),
     # training
     Case("train-out-user-files", run_with_user_files, 1, "not an lsgan run"),
@@ -333,14 +422,30 @@ CASES = [
     Case("state-not-torch", lambda w, p: corrupt_state(w, p, b"hello"), 1, "state.pt"),
     Case("weights-truncated", truncated_weights, 1, "model.safetensors"),
     Case("state-runs-code", state_gadget, 1, "refused"),
+    Case("state-holds-a-list", lambda w, p: saved_state(w, p, lambda s: [1, 2]), 1,
+         "state.pt: not a training state lsgan wrote (it holds a list"),
+    Case("state-lacks-optimizer", lambda w, p: saved_state(w, p, lambda s: without(s, "optimizer")), 1,
+         "state.pt: not a training state lsgan wrote (no 'optimizer')"),
+    Case("state-step-is-text", lambda w, p: saved_state(w, p, lambda s: {**s, "step": "six"}), 1,
+         "state.pt: not a training state lsgan wrote ('step' is a str)"),
+    Case("recipe-malformed-yaml", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe",
+                                                written(w / "r.yaml", b"vae: [1, 2\n"), "--out", w / "run"], 1,
+         "r.yaml: not a recipe (YAML text) (line 2"),
+    # a full disk: the error names the file being written and says so plainly
+    Case("disk-full-preprocess", lambda w, p: ["preprocess", "--source", "synthetic", "--num-clips", 60,
+                                               "-o", w / "full" / "s.h5"], 1, "s.h5.parts", disk=1 << 20),
+    Case("disk-full-generate", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "--text", "walk",
+                                             "--frames", 196, "-o", w / "full" / "gen"], 1, "full/gen/000_walk",
+         disk=100 << 10),
     # files that would run code when unpickled: refused, nothing runs (no PWNED file appears)
     Case("body-model-runs-code", body_model_gadget, 1, "refused to unpickle"),
     Case("humanact12-runs-code", lambda w, p: humanact12_gadget(w), 1, "refused to unpickle"),
     # encode-latents, train-gan
     Case("encode-output-user-file", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae", p / "vae",
                                                   "-o", text_file(w, "c.h5")], 1, "pass --force"),
-    Case("encode-vae-not-checkpoint", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae", w,
-                                                    "-o", w / "c.h5"], 1, "no checkpoint here"),
+    Case("encode-vae-not-checkpoint", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae",
+                                                    user_run_folder(w, {"notes.txt": "x"}), "-o", w / "c.h5"], 1,
+         "no checkpoint here"),
     Case("gan-cache-not-cache", lambda w, p: ["train-gan", "--cache", p / "synth.h5", "--out", w / "g"], 1,
          "synth.h5"),
     # generate
@@ -351,6 +456,23 @@ CASES = [
     Case("generate-no-prompt", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "-o", w / "out"], 2,
          "--text"),
     Case("generate-output-is-file", lambda w, p: generate_args(p, text_file(w)), 1, "not a folder"),
+    Case("generate-gan-config-lacks-section", lambda w, p: edited_checkpoint(w, p, "gan", lambda m: m["config"].pop(
+        "gan")), 1, "gan/best/config.json: not a checkpoint config this lsgan version reads (no 'gan')"),
+    Case("generate-gan-config-wrong-type", lambda w, p: edited_checkpoint(w, p, "gan", lambda m: m["config"]["gan"]
+                                                                          .update(latent_dim="sixteen")), 1,
+         "gan/best/config.json: not a checkpoint config"),
+    Case("generate-gan-extra-not-object", lambda w, p: edited_checkpoint(w, p, "gan", lambda m: m.update(extra="x")),
+         1, "gan/best/config.json: not a generator's config"),
+    Case("generate-gan-latent-stats-wrong-size", lambda w, p: edited_checkpoint(
+        w, p, "gan", lambda m: m["extra"].update(latent_mean=[0.0])), 1, "'latent_mean' holds (1,) values"),
+    Case("generate-vae-config-unknown-key", lambda w, p: edited_checkpoint(w, p, "vae", lambda m: m["config"]["model"]
+                                                                           .update(bogus=1)), 1,
+         "vae/best/config.json: not a checkpoint config"),
+    Case("generate-vae-mean-wrong-size", lambda w, p: edited_checkpoint(w, p, "vae", lambda m: m["extra"].update(
+        mean=[0.0, 1.0])), 1, "vae/best/config.json: not a checkpoint config"),
+    Case("generate-prompts-not-utf8", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "--prompts",
+                                                    written(w / "prompts.txt", b"\xff\xfewalk\n"), "-o", w / "out"],
+         1, "prompts.txt: not a prompts file of UTF-8 text"),
     Case("timeline-blank-line", lambda w, p: timeline_args(w, p, "walk#40\n\nrun#40\n"), 1,
          "take.txt: line 2 is blank"),
     Case("timeline-line-without-frames", lambda w, p: timeline_args(w, p, "walk#40\nrun forward\n"), 1,
@@ -374,6 +496,15 @@ CASES = [
          "not a file lsgan wrote"),
     Case("export-into-input-folder", lambda w, p: ["export", "--bvh", p / "gen", "-o", p / "gen"], 1,
          "the input"),
+    Case("export-manifest-not-object", lambda w, p: ["export", "--gif", generate_folder_with_manifest(w, p, "[1]"),
+                                                     "-o", w / "gifs"], 1, "gen/manifest.json: not a manifest"),
+    Case("export-manifest-truncated", lambda w, p: ["export", "--gif", generate_folder_with_manifest(w, p, '{"moti'),
+                                                    "-o", w / "gifs"], 1, "gen/manifest.json: not a manifest"),
+    Case("export-no-frames", lambda w, p: ["export", "--bvh", npy_file(w, "m_joints.npy", np.zeros((0, 22, 3))),
+                                           "-o", w / "m.bvh"], 1, "m_joints.npy: holds no frames"),
+    Case("export-nan-joints", lambda w, p: ["export", "--bvh", npy_file(w, "m_joints.npy",
+                                                                        np.full((8, 22, 3), np.nan)),
+                                            "-o", w / "m.bvh"], 1, "m_joints.npy: holds NaN"),
     Case("export-corrupt-npy", lambda w, p: ["export", "--bvh", text_file(w, "m_joints.npy"), "-o", w / "m.bvh"], 1,
          "m_joints.npy"),
     Case("export-body-model-missing", lambda w, p: ["export", "--glb", p / "gen", "--body-model", w / "nomodels",
@@ -433,6 +564,32 @@ CASES = [
     Case("bench-json-user-file", lambda w, p: ["bench", "--json", text_file(w, "b.json")], 1, "pass --force"),
     Case("inspect-text-file", lambda w, p: ["inspect", text_file(w, "s.h5")], 1, "s.h5"),
     Case("inspect-hdf5-not-shard", lambda w, p: ["inspect", hdf5_not_shard(w)], 1, "not an lsgan motion shard"),
+    # outputs: nothing of the user's is replaced, and no output lies inside an input (issue 28)
+    Case("force-keeps-annotated-log", lambda w, p: train_into(copied_run(w, p, "# my note\n"), p, "--force"), 1,
+         "log.csv: is not what lsgan wrote"),
+    Case("resume-keeps-annotated-log", lambda w, p: train_into(copied_run(w, p, "# my note\n"), p, "--resume"), 1,
+         "log.csv: is not what lsgan wrote"),
+    Case("resume-into-user-folder", lambda w, p: train_into(user_run_folder(w, {"thesis.tex": "x"}), p, "--resume"), 1,
+         "no lsgan run to resume"),
+    Case("resume-user-log-no-run", lambda w, p: train_into(user_run_folder(w, {"log.csv": "step,x\n1,2\n",
+                                                                          "thesis.tex": "x"}), p, "--resume"), 1,
+         "log.csv: is not what lsgan wrote"),
+    Case("force-keeps-user-heldout", lambda w, p: train_into(copied_run(w, p, None, {"heldout.json": "{}"}), p,
+                                                             "--force"),
+         1, "heldout.json: is not what lsgan wrote"),
+    Case("report-is-the-output", lambda w, p: ["preprocess", "--source", "synthetic", "--num-clips", 8, "-o",
+                                               w / "d.h5", "--report", w / "d.h5"], 1, "is also the output"),
+    Case("report-onto-a-shard", lambda w, p: ["preprocess", "--source", "synthetic", "--num-clips", 8, "-o",
+                                              w / "b.h5", "--report", p / "synth.h5"], 1, "pass --force"),
+    Case("evaluate-into-its-run", lambda w, p: ["evaluate", "--gan", p / "gan", "--vae", p / "vae", "--data",
+                                                p / "synth.h5", "-o", p / "gan" / "metrics"], 1,
+         "lies inside the input folder"),
+    Case("bench-json-into-its-run", lambda w, p: ["bench", "--gan", p / "gan", "--json", p / "gan" / "x.json"], 1,
+         "lies inside the input folder"),
+    Case("texts-output-inside", lambda w, p: ["preprocess", "--source", "joints",
+                                              joints_dir(w, {"a.npy": good_joints()[0]}), "--texts",
+                                              user_run_folder(w, {"a.txt": "a person walks#0.0#0.0"}), "-o",
+                                              w / "run" / "x.h5"], 1, "lies inside the input folder"),
     Case("unknown-command", lambda w, p: ["fly"], 2, "no such command"),
 ]
 
@@ -441,16 +598,18 @@ CASES = [
 def test_bad_input(case: Case, pipe: Path, tmp_path: Path) -> None:
     w = tmp_path / "w"
     w.mkdir()
-    args = case.args(w, pipe)
-    before = snapshot(w, pipe)
-    out = lsgan(*args, cwd=w)
+    with small_disk(w / "full", case.disk) if case.disk else contextlib.nullcontext((None, "")) as (limit, words):
+        args = case.args(w, pipe)
+        before = snapshot(w, pipe)
+        out = lsgan(*args, cwd=w, preexec_fn=limit)
+        after = snapshot(w, pipe)
     errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
     assert out.returncode == case.code, out.stderr
     assert len(errors) == 1, out.stderr
     assert case.phrase.lower() in errors[0].lower(), out.stderr
+    assert words in errors[0], out.stderr
     assert "Traceback" not in out.stderr
     assert not list(w.rglob("PWNED")), "a crafted pickle ran code"
-    after = snapshot(w, pipe)
     changed = [str(p) for p, h in before.items() if after.get(p) != h]
     assert not changed, f"pre-existing files changed or removed: {changed}"
 
@@ -553,7 +712,7 @@ def test_force_keeps_a_last_folder_lsgan_did_not_write(tmp_path: Path) -> None:
     (tmp_path / "run" / "last").mkdir(parents=True)
     (tmp_path / "run" / "last" / "notes.txt").write_text("mine")
     (tmp_path / "run" / "log.csv").write_text("step\n")
-    with pytest.raises(OutputError, match="not a checkpoint lsgan wrote"):
+    with pytest.raises(OutputError, match="last: is not what lsgan wrote"):
         claim_run(tmp_path / "run", resume=False, force=True)
     assert (tmp_path / "run" / "last" / "notes.txt").read_text() == "mine"
     assert (tmp_path / "run" / "log.csv").exists()

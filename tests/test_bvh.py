@@ -13,6 +13,7 @@ from lsgan.data.bvh import Bvh, forward_kinematics, read_bvh
 from lsgan.data.captions import bandai_captions
 from lsgan.data.clip import ClipError, swap_left_right
 from lsgan.data.joint_maps import PRESETS, apply_joint_map, load_joint_map
+from lsgan.data.resample import resample
 from lsgan.data.skeleton import BONE_LENGTHS, JOINT_NAMES, PARENTS, RAW_OFFSETS, bone_lengths
 from lsgan.data.sources.bvh import BvhSource, bandai_labels, clip_name
 
@@ -169,6 +170,75 @@ def test_gzip_and_crlf_read_the_same(tmp_path):
         assert other.names == plain.names and other.channels == plain.channels
         np.testing.assert_array_equal(other.motion, plain.motion)
         np.testing.assert_array_equal(forward_kinematics(other), forward_kinematics(plain))
+
+
+@pytest.mark.parametrize("bom,eol,gz", [(True, "\n", False), (False, "\r", False), (True, "\r\n", False),
+                                        (True, "\r", True)], ids=["bom", "cr", "bom-crlf", "bom-cr-gz"])
+def test_bom_and_cr_line_ends_read_the_same(tmp_path, bom, eol, gz):
+    """A UTF-8 byte-order mark and CR-only line ends (old Mac exporters) were refused as 'not a BVH file'."""
+    rng = np.random.default_rng(2)
+    text = bvh_text(SMALL_HIERARCHY, rng.uniform(-90, 90, size=(5, SMALL_CHANNELS)))
+    plain = read_bvh(write(tmp_path / "plain.bvh", text))
+    data = (b"\xef\xbb\xbf" if bom else b"") + text.replace("\n", eol).encode()
+    path = tmp_path / ("other.bvh.gz" if gz else "other.bvh")
+    path.write_bytes(gzip.compress(data) if gz else data)
+    other = read_bvh(path)
+    assert other.names == plain.names and other.channels == plain.channels and other.frame_time == plain.frame_time
+    np.testing.assert_array_equal(other.motion, plain.motion)
+    np.testing.assert_array_equal(other.offsets, plain.offsets)
+
+
+@pytest.mark.parametrize("frames", [100_000_000, 10**12, 5000])
+def test_frame_counts_the_file_cannot_hold_are_refused_before_allocating(tmp_path, frames):
+    """A 20 KB file saying 'Frames: 100000000' is refused from its size, before any frame is parsed."""
+    text = bvh_text(SMALL_HIERARCHY, np.zeros((200, SMALL_CHANNELS)), frames=frames)
+    path = write(tmp_path / "huge.bvh", text)
+    assert path.stat().st_size < 40_000
+    with pytest.raises(ClipError) as err:
+        read_bvh(path)
+    assert str(err.value).startswith(f"{path}: header says {frames:,} frames of {SMALL_CHANNELS} channels, more "
+                                     "values than the")
+
+
+def test_joints_without_channels_cannot_ask_for_huge_kinematics(tmp_path):
+    """Frames x joints is bounded too: joints need no channels, so a small file could ask forward kinematics for
+    gigabytes (200 bytes per joint and frame)."""
+    joints = "".join(f"  JOINT J{k}\n  {{\n    OFFSET 0 1 0\n    CHANNELS 0\n  }}\n" for k in range(2000))
+    hierarchy = "HIERARCHY\nROOT Root\n{\n  OFFSET 0 0 0\n  CHANNELS 1 Yposition\n" + joints + "}\n"
+    path = write(tmp_path / "wide.bvh", bvh_text(hierarchy, np.zeros((6000, 1))))
+    with pytest.raises(ClipError, match=r"6,000 frames of 2001 joints is more than MAX_JOINT_FRAMES \(10,000,000\)"):
+        read_bvh(path)
+
+
+@pytest.mark.parametrize("frame_time", ["100000", "0", "-0.0333", "nan", "inf", "1e-9"])
+def test_absurd_frame_times_are_refused(tmp_path, frame_time):
+    """'Frame Time: 100000' made the resampling to 20 fps ask for 58 GiB; 0, negative, NaN and 1e-9 are as wrong."""
+    text = bvh_text(SMALL_HIERARCHY, np.zeros((3, SMALL_CHANNELS))).replace("Frame Time: 0.0333333",
+                                                                            f"Frame Time: {frame_time}")
+    path = write(tmp_path / "slow.bvh", text)
+    with pytest.raises(ClipError, match="is outside 0.0001-1 s") as err:
+        read_bvh(path)
+    assert str(err.value).startswith(f"{path}: frame time ")
+
+
+@pytest.mark.parametrize("frame_time,frames", [("1", 21), ("0.0001", 1)])
+def test_frame_times_at_the_limits_resample(tmp_path, frame_time, frames):
+    """1 fps is upsampled 20x (the most resample allows); 10,000 fps is downsampled by 500."""
+    text = bvh_text(SMALL_HIERARCHY, np.zeros((2, SMALL_CHANNELS))).replace("Frame Time: 0.0333333",
+                                                                            f"Frame Time: {frame_time}")
+    path = write(tmp_path / "limit.bvh", text)
+    bvh = read_bvh(path)
+    assert len(resample(forward_kinematics(bvh), bvh.fps, 20.0)) == frames
+
+
+def test_an_fps_override_cannot_upsample_without_bound(tmp_path):
+    path = write(tmp_path / "small.bvh", bvh_text(SMALL_HIERARCHY, np.zeros((3, SMALL_CHANNELS))))
+    (tmp_path / "map.json").write_text(json.dumps({"joints": {n: "Root" for n in JOINT_NAMES}}))
+    with pytest.raises(ClipError, match="would multiply the frames by more than 20: a wrong frame rate") as err:
+        BvhSource(str(path), preset="cmu", joint_map=str(tmp_path / "map.json"), fps=0.001).load(str(path))
+    assert str(err.value).startswith(str(path))
+    with pytest.raises(ValueError, match="more than 20"):
+        resample(np.zeros((3, 22, 3)), 0.5, 20.0)
 
 
 # ---------------------------------------------------------------- bad input

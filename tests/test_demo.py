@@ -132,6 +132,18 @@ def test_demo_interrupted_continued_and_reused(tmp_path):
                            text=True, timeout=300)
     assert other.returncode == 1 and "other settings" in other.stderr and "--fresh" in other.stderr
 
+    # 5. --fresh removes the demo's own files and keeps the user's, wherever they were put (issue 28, B6)
+    from lsgan.demo import _clear_demo
+
+    mine = {out / "glb" / "my.glb": b"glb", out / "motions" / "notes.txt": b"n", out / "data" / "mocap.h5": b"h",
+            out / "runs" / "vae" / "thesis.tex": b"t", out / "notes.md": b"m"}
+    for path, data in mine.items():
+        path.write_bytes(data)
+    _clear_demo(out)
+    assert all(path.read_bytes() == data for path, data in mine.items())
+    left = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file() and p.name != ".lsgan-outputs.json")
+    assert left == sorted(str(p.relative_to(out)) for p in mine), left
+
 
 def test_demo_help_documents_the_scale():
     out = subprocess.run([sys.executable, "-m", "lsgan.cli", "demo", "--help"], capture_output=True, text=True)

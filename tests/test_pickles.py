@@ -1,6 +1,10 @@
 """lsgan.pickles and the loaders that use it: gadgets that run code when unpickled are refused, by name and
 without running, through every entry point (SMPL .pkl, `lsgan export --body-model`, GloVe, HumanAct12, AMASS
 model .npz/.pkl, a checkpoint's state.pt, the official evaluator's finest.tar); real-format files still load.
+Pickles that break a bound (nesting, item count, declared sizes, zero-size dtypes, huge sparse matrices) and
+.npy/.npz headers or torch storages claiming more than the file holds are refused before anything is
+unpickled or allocated, by every reader (hostile cases that crash plain pickle run in a child process); and
+no module but lsgan/pickles.py unpickles (a check of the package's syntax tree).
 
 Every gadget writes the sentinel file ``pwned.npy`` when it runs. ``test_gadget_is_live`` first shows that
 plain ``pickle.loads`` does run it (so each refusal below is a refusal of working code); the other tests
@@ -8,8 +12,10 @@ check that the sentinel never appears.
 """
 from __future__ import annotations
 
+import ast
 import importlib.util
 import io
+import json
 import os
 import pickle
 import struct
@@ -31,7 +37,17 @@ from lsgan.data.sources.amass import read_body_model_file
 from lsgan.data.sources.humanact12 import HumanAct12Source
 from lsgan.models.checkpoint import load_state, load_torch_file, load_weights, read_meta, save_checkpoint, weights_hash
 from lsgan.models.evaluator import WordVectorizer, load_evaluator
-from lsgan.pickles import ALLOWED, PickleReadError, SafeUnpickler, load_npz, load_pickle, read_npy_object
+import lsgan.pickles
+from lsgan.pickles import (
+    ALLOWED,
+    MAX_PICKLE_DEPTH,
+    PickleReadError,
+    SafeUnpickler,
+    load_npy,
+    load_npz,
+    load_pickle,
+    read_npy_object,
+)
 
 SENTINEL = "pwned.npy"  # numpy.save appends .npy, so every gadget writes this name
 
@@ -523,7 +539,7 @@ def _checkpoint(folder: Path) -> Path:
     opt = torch.optim.Adam(model.parameters())
     model(torch.ones(1, 2)).sum().backward()
     opt.step()
-    save_checkpoint(folder, model=model, kind="vae", config={}, step=3,
+    save_checkpoint(folder, model=model, kind="toy", config={}, step=3,  # not a trainer's: its state is not checked
                     state={"optimizer": opt.state_dict(), "rng": torch.arange(4), "step": 3})
     return folder
 
@@ -548,3 +564,235 @@ def _official_layout(root: Path) -> Path:
         np.save(root / f"t2m/Comp_v6_KLD01/meta/{name}.npy", np.ones(263, np.float32))
     _write_glove(root / "glove", protocol=4)
     return root
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# One place unpickles: no module but lsgan/pickles.py calls an unpickler, torch.load or np.load(allow_pickle=True)
+
+PACKAGE = Path(__file__).resolve().parents[1] / "lsgan"
+FORBIDDEN = {"pickle.load", "pickle.loads", "pickle.Unpickler", "pickle._Unpickler", "_pickle.load", "_pickle.loads",
+             "_pickle.Unpickler", "torch.load", "torch.serialization.load", "joblib.load", "pandas.read_pickle",
+             "dill.load", "dill.loads", "cloudpickle.load", "cloudpickle.loads"}
+NP_LOAD = {"numpy.load"}
+
+
+def _aliases(tree: ast.AST) -> dict[str, str]:
+    """Local name -> the dotted name it stands for, from the module's imports (``import numpy as np``, ``from torch
+    import load``)."""
+    out = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update({a.asname or a.name.split(".")[0]: a.name if a.asname else a.name.split(".")[0]
+                        for a in node.names})
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            out.update({a.asname or a.name: f"{node.module}.{a.name}" for a in node.names})
+    return out
+
+
+def _dotted(node: ast.AST, aliases: dict[str, str]) -> str | None:
+    """``np.load`` -> 'numpy.load' (through the module's imports); None for anything but a (dotted) name."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name):
+        return None
+    return ".".join([aliases.get(node.id, node.id), *reversed(parts)])
+
+
+def _unpickling_sites(path: Path) -> list[tuple[int, str]]:
+    """Every use of an unpickler in the module at ``path``: (line, what)."""
+    tree = ast.parse(path.read_text(), str(path))
+    aliases = _aliases(tree)
+    found = []
+    for node in ast.walk(tree):
+        name = _dotted(node, aliases) if isinstance(node, (ast.Attribute, ast.Name)) else None
+        if name in FORBIDDEN:
+            found.append((node.lineno, name))
+        if isinstance(node, ast.Call) and _dotted(node.func, aliases) in NP_LOAD:
+            pickles = [k.value for k in node.keywords if k.arg == "allow_pickle"] + node.args[2:3]
+            if any(not (isinstance(v, ast.Constant) and v.value is False) for v in pickles):
+                found.append((node.lineno, "numpy.load(allow_pickle=...)"))
+    return found
+
+
+def test_only_lsgan_pickles_unpickles():
+    sites = [f"{p.relative_to(PACKAGE.parent)}:{line} {what}" for p in sorted(PACKAGE.rglob("*.py"))
+             if p != PACKAGE / "pickles.py" for line, what in _unpickling_sites(p)]
+    assert sites == [], "unpickling outside lsgan/pickles.py (use its loaders): " + ", ".join(sites)
+    own = {what for _, what in _unpickling_sites(PACKAGE / "pickles.py")}
+    assert {"torch.load", "pickle.Unpickler"} <= own
+
+
+def test_the_syntax_check_sees_every_spelling(tmp_path):
+    """The check itself finds the usual spellings (a check that finds nothing would pass anything)."""
+    src = ("import pickle as pk\nimport numpy as np\nimport torch\nfrom torch import load\nfrom pickle import loads\n"
+           "pk.load(f)\nloads(b)\ntorch.load(p)\nload(p)\nnp.load(p, allow_pickle=True)\nnp.load(p, None, True)\n"
+           "np.load(p, allow_pickle=flag)\nnp.load(p)\nnp.load(p, allow_pickle=False)\nclass U(pk.Unpickler): pass\n")
+    (tmp_path / "m.py").write_text(src)
+    assert sorted(line for line, _ in _unpickling_sites(tmp_path / "m.py")) == [6, 7, 8, 9, 10, 11, 12, 15]
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Bounds, checked on the opcode stream before anything is unpickled (issue 28)
+
+NESTED_KEY = b"\x80\x02}" + b")" + b"\x85" * 1_000_000 + b"Ns."  # {((((...),),),): None}, 1 MB, no globals
+
+
+def _s0_array() -> bytes:
+    """An array of 2**32 items of the zero-size dtype S0 and no data (lsgan's reader made it with np.zeros: 4 GiB)."""
+    return (b"\x80\x02cnumpy._core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87R(K\x01\x8a\x05"
+            + (1 << 32).to_bytes(5, "little") + b"\x85cnumpy\ndtype\nX\x02\x00\x00\x00S0\x89\x88\x87R"
+            b"(K\x03X\x01\x00\x00\x00|NNNK\x00K\x01K\x00tb\x89C\x00tb.")
+
+
+def _in_child(code: str, *args, limit_gb: float = 2.0) -> subprocess.CompletedProcess:
+    """``code`` run by a fresh Python under a ``limit_gb`` address-space limit (a crash there cannot stop pytest)."""
+    prelude = (f"import resource; resource.setrlimit(resource.RLIMIT_AS, ({int(limit_gb * 2**30)},) * 2)\n"
+               "import sys, json\n")
+    return subprocess.run([sys.executable, "-c", prelude + code, *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))
+
+
+def test_nested_key_is_live():
+    """Plain pickle.loads of the 1 MB nested key, no globals at all, kills the process with SIGSEGV."""
+    code = "import pickle; pickle.loads(b'\\x80\\x02}' + b')' + b'\\x85' * 1_000_000 + b'Ns.')"
+    assert _in_child(code).returncode == -11
+
+
+READERS_CHILD = """
+from pathlib import Path
+from lsgan.data.body_model import read_body_model
+from lsgan.data.sources.amass import read_body_model_file
+from lsgan.data.sources.humanact12 import HumanAct12Source
+from lsgan.models.checkpoint import load_state
+from lsgan.models.evaluator import WordVectorizer, load_evaluator
+d = Path(sys.argv[1])
+reads = {
+    "body model .pkl": lambda: read_body_model(d / "smpl"),
+    "AMASS model .pkl": lambda: read_body_model_file(str(d / "smpl" / "smpl" / "SMPL_NEUTRAL.pkl")),
+    "AMASS model .npz entry": lambda: read_body_model_file(str(d / "male" / "model.npz")),
+    "body model .npz entry": lambda: read_body_model(d / "male" / "model.npz"),
+    "HumanAct12": lambda: HumanAct12Source(str(d / "act" / "humanact12poses.pkl")).scan(),
+    "GloVe": lambda: WordVectorizer(d / "t2m" / "glove"),
+    "state.pt": lambda: load_state(d / "run"),
+    "state.pt, legacy format": lambda: load_state(d / "legacy"),
+    "finest.tar": lambda: load_evaluator(d / "t2m"),
+}
+out = {}
+for name, read in reads.items():
+    try:
+        read()
+        out[name] = "read"
+    except Exception as e:
+        out[name] = f"{type(e).__name__}: {e}"
+print(json.dumps(out))
+"""
+
+
+def _hostile_everywhere(d: Path, payload: bytes) -> dict[str, Path]:
+    """``payload`` as the pickle of every reader's input; returns the file each reader should name."""
+    (d / "smpl" / "smpl").mkdir(parents=True)
+    (d / "smpl" / "smpl" / "SMPL_NEUTRAL.pkl").write_bytes(payload)
+    _npz_with_object_entry(d / "male" / "model.npz", make_model("smplh"), "J_regressor", payload)
+    (d / "act").mkdir()
+    (d / "act" / "humanact12poses.pkl").write_bytes(payload)
+    root = _official_layout(d / "t2m")
+    (root / "glove" / "our_vab_idx.pkl").write_bytes(payload)
+    _torch_file_with(root / "t2m/text_mot_match/model/finest.tar", payload)
+    _torch_file_with(_checkpoint(d / "run" / "last") / "state.pt", payload)
+    (_checkpoint(d / "legacy") / "state.pt").write_bytes(payload)
+    pkl = d / "smpl" / "smpl" / "SMPL_NEUTRAL.pkl"
+    return {"body model .pkl": pkl, "AMASS model .pkl": pkl, "AMASS model .npz entry": d / "male" / "model.npz",
+            "body model .npz entry": d / "male" / "model.npz", "HumanAct12": d / "act" / "humanact12poses.pkl",
+            "GloVe": root / "glove" / "our_vab_idx.pkl", "state.pt": d / "run" / "last" / "state.pt",
+            "state.pt, legacy format": d / "legacy" / "state.pt",
+            "finest.tar": root / "t2m/text_mot_match/model/finest.tar"}
+
+
+@pytest.mark.parametrize("payload,phrase", [(NESTED_KEY, "containers nested more than 100 deep"),
+                                            (b"\x80\x02" + b"]" * 2 + b"\x8e" + struct.pack("<Q", 1 << 40) + b"ab.",
+                                             "declares 1,099,511,627,776 bytes")],
+                         ids=["nested-tuple-key", "huge-bytes8"])
+def test_every_reader_refuses_past_the_bounds(tmp_path, payload, phrase):
+    """The nested key crashed 8 of 9 readers (SIGSEGV); now each refuses it in one line naming its file."""
+    expected = _hostile_everywhere(tmp_path, payload)
+    run = _in_child(READERS_CHILD, tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    results = json.loads(run.stdout)
+    for name, path in expected.items():
+        message = results[name].split(": ", 1)[1]
+        assert message.startswith(str(path)) and phrase in message and "\n" not in message, (name, message)
+
+
+@pytest.mark.parametrize("name,data,phrase", [
+    ("S0 array", _s0_array(), "has zero-size items"),
+    ("U0 scalar", pickle.dumps(np.str_(""), protocol=2), "has zero-size items"),
+    ("101 nested lists", b"\x80\x02" + b"]" * 101 + b"a" * 100 + b".", "nested more than 100 deep"),
+    ("memo index 2**32-1", b"\x80\x02]r\xff\xff\xff\xff.", "memo index 4,294,967,295"),
+    ("protocol-4 frame past the end", b"\x80\x04\x95" + struct.pack("<Q", 1 << 40) + b"N.", "a frame of 1,099,511"),
+    ("a list deepened after it was put in a tuple",  # l = []; t = (l,); l.append([[...]]), through the memo
+     b"\x80\x02]q\x00\x85h\x00" + b"]" * 100 + b"a" * 99 + b"a0.", "nested more than 100 deep"),
+    ("huge sparse matrix", pickle.dumps(sp.csc_matrix((3_000_000, 8_000)), protocol=4), "MEMORY_BUDGET"),
+])
+def test_bounds_refuse_before_allocating(tmp_path, name, data, phrase):
+    path = tmp_path / "hostile.pkl"
+    path.write_bytes(data)
+    with pytest.raises(PickleReadError) as err:
+        load_pickle(path)
+    assert str(err.value).startswith(f"{path}: refused: ") and phrase in str(err.value), str(err.value)
+
+
+def test_depth_and_items_at_the_limits_still_load(tmp_path, monkeypatch):
+    path = tmp_path / "deep.pkl"
+    deep: list = []
+    for _ in range(MAX_PICKLE_DEPTH - 1):
+        deep = [deep]
+    path.write_bytes(pickle.dumps(deep, protocol=4))
+    assert isinstance(load_pickle(path), list)
+    monkeypatch.setattr(lsgan.pickles, "MAX_PICKLE_ITEMS", 1000)
+    path.write_bytes(pickle.dumps(list(range(900)), protocol=4))
+    assert load_pickle(path) == list(range(900))
+    path.write_bytes(pickle.dumps(list(range(2000)), protocol=4))
+    with pytest.raises(PickleReadError, match=r"refused: more than 1,000 items \(MAX_PICKLE_ITEMS\)"):
+        load_pickle(path)
+
+
+def test_huge_sparse_body_model_is_one_line(tmp_path):
+    """A J_regressor declaring 179 GiB dense ended in 'internal error: MemoryError'."""
+    data = make_model("smpl")
+    data["J_regressor"] = sp.csc_matrix((3_000_000, 8_000))
+    (tmp_path / "smpl").mkdir()
+    (tmp_path / "smpl" / "SMPL_NEUTRAL.pkl").write_bytes(pickle.dumps(data, protocol=4))
+    with pytest.raises(BodyModelError, match="192,000,000,000 bytes dense, more than MEMORY_BUDGET"):
+        read_body_model(tmp_path)
+
+
+@pytest.mark.parametrize("descr,shape,phrase", [("|S0", (1 << 32,), "zero-size items"),
+                                                ("<f8", (1 << 20, 1 << 20), "where the file holds")])
+def test_npy_and_npz_headers_are_checked_against_the_file(tmp_path, descr, shape, phrase):
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": descr, "fortran_order": False, "shape": shape})
+    npy = tmp_path / "mean.npy"
+    npy.write_bytes(header.getvalue() + b"\0" * 64)
+    with pytest.raises(PickleReadError, match=phrase) as err:
+        load_npy(npy)
+    assert str(err.value).startswith(f"{npy}: refused: ")
+    npz = tmp_path / "model.npz"
+    np.savez(npz, f=np.zeros((2, 3), np.uint32))
+    with zipfile.ZipFile(npz, "a", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("v_template.npy", header.getvalue() + b"\0" * 64)
+    with pytest.raises(PickleReadError, match=phrase) as err:
+        load_npz(npz)
+    assert str(err.value).startswith(f"{npz}: entry 'v_template': refused: ")
+
+
+def test_torch_legacy_format_loads_and_its_storages_are_bounded(tmp_path):
+    path = tmp_path / "state.pt"
+    torch.save({"step": 3, "w": torch.arange(4.0)}, path, _use_new_zipfile_serialization=False)
+    assert torch.equal(load_torch_file(path)["w"], torch.arange(4.0))
+    forged = path.read_bytes().replace(b"K\x04N", struct.pack("<BI", 0x4A, 1 << 30) + b"N", 1)
+    assert forged != path.read_bytes()
+    path.write_bytes(forged)
+    with pytest.raises(ValueError, match="refused: its storages declare 1,073,741,824 elements where"):
+        load_torch_file(path)

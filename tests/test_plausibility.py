@@ -174,6 +174,34 @@ def test_helpers_are_batched():
     assert skeleton_height(bone_lengths(clips)).shape == (2, T)
 
 
+def swapped(clip: np.ndarray, a: int, b: int, frames: int | None = None) -> np.ndarray:
+    """The clip with joints ``a`` and ``b`` exchanged (in its first ``frames`` frames): a joint map naming each
+    one's source joint for the other."""
+    out = clip.copy()
+    out[:frames, [a, b]] = out[:frames, [b, a]]
+    return out
+
+
+@pytest.mark.parametrize("pair,a,b", [("knees", 4, 5), ("elbows", 18, 19), ("knees", 1, 2), ("elbows", 16, 17)],
+                         ids=["knees", "elbows", "hips", "shoulders"])
+def test_swapped_left_and_right_joints_are_flagged(pair, a, b):
+    clip = standing()
+    assert clip_checks(clip)[f"{pair}_crossed_fraction"] == 0.0
+    c = clip_checks(swapped(clip, a, b))
+    assert c[f"{pair}_crossed_fraction"] == 1.0 and kinds(swapped(clip, a, b)) == ["bones"]
+    (w,) = clip_warnings("s", c)
+    assert w.startswith(f"s: right {pair[:-1]} on the body's left of the left {pair[:-1]} in 100% of frames")
+    assert f"left and right {pair} (or their parents) swapped in the joint map?" in w
+
+
+@pytest.mark.parametrize("frames,flagged", [(30, False), (49, False), (50, True)])
+def test_crossed_threshold(frames, flagged):
+    """Knees crossed in half the frames or more: real mocap crosses them in none (docs/plausibility.md)."""
+    clip = swapped(standing(), 4, 5, frames)
+    assert clip_checks(clip)["knees_crossed_fraction"] == pytest.approx(frames / T)
+    assert kinds(clip) == (["bones"] if flagged else [])
+
+
 @pytest.mark.parametrize("shape", [(0, 22, 3), (10, 21, 3), (10, 22)])
 def test_rejects_bad_shapes(shape):
     with pytest.raises(ValueError, match="expected joints"):
@@ -271,6 +299,28 @@ def test_wrong_scale_is_flagged_as_scale_not_up(real_files, factor):
     for name, c in checks.items():
         (w,) = clip_warnings(name, c)
         assert w.startswith(f"{name}: figure ") and "wrong `scale`" in w and "wrong `up`" not in w
+
+
+def swap_map(tmp_path: Path, preset: str, a: str, b: str) -> str:
+    """The preset's joint map as a user file with the source joints of SMPL joints ``a`` and ``b`` exchanged."""
+    jmap = PRESETS[preset]
+    joints = {k: v if isinstance(v, str) else {"between": [v.a, v.b], "t": v.t} for k, v in jmap.joints.items()}
+    joints[a], joints[b] = joints[b], joints[a]
+    path = tmp_path / f"{preset}-{a}-{b}.json"
+    path.write_text(json.dumps({"joints": joints, "scale": jmap.scale, "up": jmap.up, "fps": jmap.fps}))
+    return str(path)
+
+
+@pytest.mark.parametrize("pair", ["knees", "elbows"])
+def test_swapped_knees_or_elbows_are_flagged_on_real_clips(real_files, tmp_path, pair):
+    """docs/plausibility.md: every one of the 2,905 Bandai and CMU clips with the knees (elbows) swapped in the
+    joint map is flagged; here the 73 clips of ``real_files``."""
+    a, b = f"left_{pair[:-1]}", f"right_{pair[:-1]}"
+    checks = real_checks(real_files, **{p: {"joint_map": swap_map(tmp_path, p, a, b)} for p in PRESETS})
+    s = summarise(checks)
+    assert s["flagged"] == len(checks) == 73 and s["counts"] == {"scale": 0, "up": 0, "bones": 73, "floor": 0}
+    assert all(c[f"{pair}_crossed_fraction"] == 1.0 for c in checks.values())
+    assert all(f"left and right {pair}" in w[0] for w in s["warnings"].values())
 
 
 def test_real_clip_lying_down_in_part_passes_and_throughout_is_flagged(bandai_dir):

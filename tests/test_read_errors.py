@@ -1,11 +1,15 @@
 """Unreadable inputs and unwritable outputs (issue 10): one line naming the file, a non-zero exit, nothing changed.
 
-Real HDF5 files (a synthetic shard, damaged in place), real tiny training runs through the CLI.
+Real HDF5 files (a synthetic shard, damaged in place), real tiny training runs through the CLI. Hostile inputs
+(issue 28: pickles past the bounds, HDF5 data from outside the file or larger than it, bad clip tables, BVH
+headers that claim too much) are one table, HOSTILE, run through the CLI.
 """
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import pickle
 import re
 import shutil
 import subprocess
@@ -15,10 +19,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import scipy.sparse as sp
+from body_models import make_model
 from torch.utils.data import DataLoader
 
 from lsgan.data.dataset import MotionDataset, collate
 from lsgan.data.shards import DataFileError, Shard, summarize, write_shard
+from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.models.cache import (
     StaleCache,
     check_cache_vae,
@@ -390,3 +397,163 @@ def test_a_retrained_vae_is_refused_with_both_hashes(run: Path, tmp_path: Path, 
     with pytest.raises(StaleCache, match="another VAE checkpoint"):
         read_latent_cache(cache, expect_vae_hash=new)
     assert snapshot(tmp_path) == before
+
+
+# -- hostile inputs (issue 28): one row each, through the command line -------------------------------------------
+#
+# Each row writes its files in a fresh folder and returns the command; the command must exit with the row's code,
+# print one `error:` line (and no traceback) with the phrase somewhere on stderr, and change no file that existed.
+
+MAP = {"joints": {n: n for n in JOINT_NAMES}, "scale": 0.01, "up": "y"}
+
+
+def _body_model_export(w: Path, payload: bytes) -> list:
+    (w / "model.pkl").write_bytes(payload)
+    np.save(w / "walk_joints.npy", np.zeros((8, 22, 3), np.float32))
+    return ["export", "--glb", "walk_joints.npy", "--body-model", "model.pkl", "-o", "walk.glb"]
+
+
+def _nested_key(w: Path, run: Path) -> list:
+    return _body_model_export(w, b"\x80\x02})" + b"\x85" * 1_000_000 + b"Ns.")
+
+
+def _s0_dtype(w: Path, run: Path) -> list:
+    s0 = (b"\x80\x02cnumpy._core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87R(K\x01\x8a\x05"
+          + (1 << 32).to_bytes(5, "little") + b"\x85cnumpy\ndtype\nX\x02\x00\x00\x00S0\x89\x88\x87R"
+          b"(K\x03X\x01\x00\x00\x00|NNNK\x00K\x01K\x00tb\x89C\x00tb.")
+    return _body_model_export(w, b"\x80\x02}X\x0a\x00\x00\x00v_template" + s0[2:-1] + b"s.")  # {"v_template": s0}
+
+
+def _huge_sparse(w: Path, run: Path) -> list:
+    model = make_model("smpl")
+    model["J_regressor"] = sp.csc_matrix((3_000_000, 8_000))
+    return _body_model_export(w, pickle.dumps(model, protocol=4))
+
+
+def _shard_copy(w: Path, run: Path, change) -> list:
+    """A copy of the synthetic shard, changed by ``change(f, w)``; the command inspects it."""
+    shutil.copy(run / "synth.h5", w / "bad.h5")
+    with h5py.File(w / "bad.h5", "r+") as f:
+        change(f, w)
+    return ["inspect", "bad.h5"]
+
+
+def _replace(f: h5py.File, name: str, **create) -> None:
+    del f[name]
+    f.create_dataset(name, **create)
+
+
+def _huge_features(f: h5py.File, w: Path) -> None:  # 3.8 TiB, compressed, no chunk written
+    _replace(f, "features", shape=(3_600_000_000, 263), dtype=np.float32, chunks=(1024, 263), compression="gzip")
+
+
+def _huge_table(f: h5py.File, w: Path) -> None:  # 8 GB of offsets in a file of a few hundred KB
+    _replace(f, "clips/offset", shape=(10**9,), dtype=np.int64)
+
+
+def _external_storage(f: h5py.File, w: Path) -> None:
+    n = f["clips/offset"].shape[0]
+    (w / "elsewhere.bin").write_bytes(np.arange(n, dtype=np.int64).tobytes())
+    _replace(f, "clips/offset", shape=(n,), dtype=np.int64, external=[(str(w / "elsewhere.bin"), 0, 8 * n)])
+
+
+def _external_link(f: h5py.File, w: Path) -> None:
+    with h5py.File(w / "other.h5", "w") as other:
+        other["mean"], other["std"] = np.zeros(263, np.float32), np.ones(263, np.float32)
+    del f["stats"]
+    f["stats"] = h5py.ExternalLink(str(w / "other.h5"), "/")
+
+
+def _virtual(f: h5py.File, w: Path) -> None:
+    n = f["clips/length"].shape[0]
+    with h5py.File(w / "other.h5", "w") as other:
+        other["length"] = np.full(n, 40, np.int32)
+    layout = h5py.VirtualLayout(shape=(n,), dtype=np.int32)
+    layout[:] = h5py.VirtualSource(str(w / "other.h5"), "length", shape=(n,))
+    del f["clips/length"]
+    f.create_virtual_dataset("clips/length", layout)
+
+
+def _offsets(value):
+    def change(f: h5py.File, w: Path) -> None:
+        offsets = f["clips/offset"][()]
+        offsets[1] = value if value < 0 else f["features"].shape[0] - 3
+        f["clips/offset"][...] = offsets
+    return change
+
+
+def _encode(w: Path, run: Path, change) -> list:
+    _shard_copy(w, run, change)
+    return ["encode-latents", "--data", "bad.h5", "--vae", run / "vae", "--text-encoder", "none", "-o", "cache.h5"]
+
+
+def _bvh(w: Path, text_of) -> list:
+    from lsgan.data.synthetic import generate
+    from lsgan.export.bvh import write_bvh
+
+    (w / "bvh").mkdir()
+    write_bvh(w / "bvh" / "walk.bvh", generate(1, seed=0)[0].joints)
+    (w / "bvh" / "walk.bvh").write_bytes(text_of((w / "bvh" / "walk.bvh").read_text()))
+    (w / "map.json").write_text(json.dumps(MAP))
+    return ["preprocess", "--source", "bvh", "--joint-map", "map.json", "bvh", "-o", "out.h5"]
+
+
+HOSTILE = {
+    "nested-tuple-pickle": (_nested_key, 1, "refused: containers nested more than 100 deep"),
+    "s0-dtype": (_s0_dtype, 1, "has zero-size items"),
+    "huge-sparse-matrix": (_huge_sparse, 1, "bytes dense, more than MEMORY_BUDGET"),
+    "shard-declares-3.8-TiB": (lambda w, r: _shard_copy(w, r, _huge_features), 1,
+                               "refused: dataset features declares (3600000000, 263) items"),
+    "table-larger-than-file": (lambda w, r: _shard_copy(w, r, _huge_table), 1,
+                               "refused: dataset clips/offset declares (1000000000,) items"),
+    "hdf5-external-storage": (lambda w, r: _shard_copy(w, r, _external_storage), 1,
+                              "refused: dataset clips/offset keeps its data in other files"),
+    "hdf5-external-link": (lambda w, r: _shard_copy(w, r, _external_link), 1, "refused: stats is an external link"),
+    "hdf5-virtual-dataset": (lambda w, r: _shard_copy(w, r, _virtual), 1, "refused: dataset clips/length is virtual"),
+    "negative-offset": (lambda w, r: _encode(w, r, _offsets(-5)), 1, "(index 1): offset -5 is negative"),
+    "offset-out-of-range": (lambda w, r: _encode(w, r, _offsets(1)), 1, "lie outside the"),
+    "bvh-huge-frames": (lambda w, r: _bvh(w, lambda t: re.sub(r"Frames: \d+", "Frames: 100000000", t).encode()), 1,
+                        "wrong 'Frames:' line"),
+    "bvh-frame-time-100000": (lambda w, r: _bvh(w, lambda t: re.sub(r"Frame Time: \S+", "Frame Time: 100000",
+                                                                     t).encode()), 1, "frame time 100000 s is outside"),
+    "bvh-bom-cr-reads": (lambda w, r: _bvh(w, lambda t: b"\xef\xbb\xbf" + t.replace("\n", "\r").encode()), 0, ""),
+}
+
+
+@pytest.mark.parametrize("case", list(HOSTILE))
+def test_hostile_input_is_one_line_or_reads(run: Path, tmp_path: Path, case: str) -> None:
+    make, code, phrase = HOSTILE[case]
+    args = make(tmp_path, run)
+    before = snapshot(tmp_path)
+    out = lsgan(*args, cwd=tmp_path)
+    assert out.returncode == code, out.stderr[-3000:]
+    if code:
+        one_error_line(out)
+        assert phrase in out.stderr, out.stderr[-3000:]
+    after = snapshot(tmp_path)
+    assert {k: after.get(k) for k in before} == before
+
+
+def test_a_cache_with_bad_tables_is_one_line(run: Path, tmp_path: Path) -> None:
+    cases = {"clips/action": (lambda a: a + 99, r"window 0 has action \d+, not an index into the \d+ action names"),
+             "clips/length": (lambda a: a * 0, "window 0 has length 0, not a positive frame count"),
+             "captions/clip": (lambda a: a - 7, r"caption 0 belongs to window -\d+, outside the \d+ windows")}
+    for name, (change, phrase) in cases.items():
+        path = tmp_path / f"{name.replace('/', '-')}.h5"
+        shutil.copy(run / "cache.h5", path)
+        with h5py.File(path, "r+") as f:
+            if not f[name].shape[0]:
+                _replace(f, name, data=np.array([-7], np.int32))
+                _replace(f, "captions/text", data=np.array(["x"], dtype=object), dtype=h5py.string_dtype())
+                _replace(f, "captions/embedding", data=np.zeros((1, 0), np.float32))
+            else:
+                f[name][...] = change(f[name][()])
+        with pytest.raises(DataFileError, match=phrase) as e:
+            read_latent_cache(path)
+        assert str(e.value).startswith(f"{path}: ") and "\n" not in str(e.value)
+    path = tmp_path / "narrow.h5"
+    shutil.copy(run / "cache.h5", path)
+    with h5py.File(path, "r+") as f:
+        _replace(f, "latents/mu", data=f["latents/mu"][:, :-1])
+    with pytest.raises(DataFileError, match=r"latents/mu has shape \(\d+, 31\), expected \(\d+, 32\)"):
+        read_latent_cache(path)

@@ -3,7 +3,9 @@
 BVH stores a joint hierarchy (offsets in the parent's frame, a channel list per joint) and one line of
 channel values per frame. Every joint may carry its own channel order and position channels; ``End Site``
 blocks only close a chain and are not joints. The reader parses the MOTION block in one numpy call on the
-whole text, so a dataset of thousands of files loads in seconds.
+whole text, so a dataset of thousands of files loads in seconds. A UTF-8 byte-order mark and CR or CRLF
+line ends are read as plain text. The header's frame count and frame time are checked before anything of
+their size is allocated (:data:`MAX_JOINT_FRAMES`, :data:`MIN_FRAME_TIME`, :data:`MAX_FRAME_TIME`).
 """
 from __future__ import annotations
 
@@ -21,10 +23,19 @@ from lsgan.data.clip import ClipError
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _CANONICAL = {c.lower(): c for c in POSITION_CHANNELS + ROTATION_CHANNELS}
+MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-4, 1.0
+"""Frame times read, in seconds: 10,000 to 1 frames per second. Mocap records at 24-480 fps and keyframed
+exports at 1 fps or more; outside the range the header is damaged (resampling 'Frame Time: 100000' to 20 fps
+would make 2,000,000 frames of each one)."""
+
+MAX_JOINT_FRAMES = 10_000_000
+"""Most frames x joints a file may declare: forward kinematics holds about 200 bytes per joint and frame
+(rotations and positions, local and global, in float64), so about 2 GB. The largest real clip here holds
+38,657 (CMU 131_02: 1,247 frames of 31 joints); an hour at 120 fps of 22 joints (Bandai's), 9,504,000."""
+
 _TOKEN = re.compile(r"[{}]|[^\s{}]+")
 _MOTION = re.compile(
-    rb"^[ \t]*MOTION[ \t]*\r?\n\s*Frames:[ \t]*(\S+)\s*Frame[ \t]+Time:[ \t]*(\S+)[ \t]*(?:\r?\n|$)",
-    re.MULTILINE,
+    rb"^[ \t]*MOTION[ \t]*\n\s*Frames:[ \t]*(\S+)\s*Frame[ \t]+Time:[ \t]*(\S+)[ \t]*(?:\n|$)", re.MULTILINE,
 )
 
 
@@ -77,14 +88,16 @@ def fps_from_frame_time(frame_time: float) -> float:
 
 
 def _read_bytes(path: str | Path) -> bytes:
-    """File contents, gunzipped when the file starts with the gzip magic number (whatever its name)."""
+    """File contents, gunzipped when the file starts with the gzip magic number (whatever its name), without a
+    UTF-8 byte-order mark and with every line ending in LF (CR-only and CRLF files read as LF ones)."""
     try:
         data = Path(path).read_bytes()
         if data[:2] == b"\x1f\x8b":
             data = gzip.decompress(data)
     except (OSError, EOFError, zlib.error) as exc:
         raise ClipError(f"{path}: cannot read: {exc}") from exc
-    return data
+    data = data.removeprefix(b"\xef\xbb\xbf")
+    return data.replace(b"\r\n", b"\n").replace(b"\r", b"\n") if b"\r" in data else data
 
 
 def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list[list[float]], list[tuple[str, ...]],
@@ -212,6 +225,24 @@ class _Hierarchy:
         return i + 2 + count
 
 
+def _check_header(path: str, frames: int, frame_time: float, channels: int, joints: int, body: int) -> None:
+    """Refuse a MOTION header that cannot be right before its frames are parsed or allocated: ``body`` bytes
+    of text hold at most (body + 1) // 2 values (a digit and a separator each)."""
+    if frames <= 0:
+        raise ClipError(f"{path}: zero frames")
+    if not MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME:  # also NaN
+        raise ClipError(f"{path}: frame time {frame_time:g} s is outside {MIN_FRAME_TIME:g}-{MAX_FRAME_TIME:g} s "
+                        "(10,000 to 1 frames per second): a damaged MOTION header")
+    if channels == 0:
+        raise ClipError(f"{path}: no joint has channels")
+    if frames * channels > (body + 1) // 2:
+        raise ClipError(f"{path}: header says {frames:,} frames of {channels} channels, more values than the "
+                        f"{body:,} bytes after it can hold: truncated file or a wrong 'Frames:' line")
+    if frames * joints > MAX_JOINT_FRAMES:
+        raise ClipError(f"{path}: {frames:,} frames of {joints} joints is more than MAX_JOINT_FRAMES "
+                        f"({MAX_JOINT_FRAMES:,}); split the clip")
+
+
 def read_bvh(path: str | Path) -> Bvh:
     """Parse a ``.bvh`` or gzip-compressed ``.bvh.gz`` file; any problem raises :class:`ClipError` naming the file."""
     path = str(path)
@@ -230,12 +261,7 @@ def read_bvh(path: str | Path) -> Bvh:
         raise ClipError(f"{path}: bad MOTION header: {exc}") from exc
     names, parents, offsets, channels, end_sites = _parse_hierarchy(path, header)
     num_channels = sum(len(c) for c in channels)
-    if num_frames <= 0:
-        raise ClipError(f"{path}: zero frames")
-    if not np.isfinite(frame_time) or frame_time <= 0:
-        raise ClipError(f"{path}: frame time must be positive, got {motion.group(2).decode(errors='replace')}")
-    if num_channels == 0:
-        raise ClipError(f"{path}: no joint has channels")
+    _check_header(path, num_frames, frame_time, num_channels, len(names), len(data) - motion.end())
     try:
         with warnings.catch_warnings():  # numpy < 2 warns (and stops early) where numpy 2 raises
             warnings.simplefilter("error", DeprecationWarning)

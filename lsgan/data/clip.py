@@ -7,6 +7,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from lsgan.pickles import PickleReadError
+from lsgan.pickles import load_npy as checked_npy
+
 
 class ClipError(Exception):
     """A clip (or input file) that cannot be imported; the message says why. The pipeline skips and reports it."""
@@ -62,9 +65,11 @@ def load_npy(path: str | os.PathLike) -> np.ndarray:
         with open(path, "rb") as f:
             if f.read(6) != b"\x93NUMPY":
                 raise ClipError(f"{path}: not a .npy array file")
-        array = np.load(path, allow_pickle=False)
+        array = checked_npy(path)  # its header checked against the file's size before numpy allocates
     except ClipError:
         raise
+    except PickleReadError as e:
+        raise ClipError(str(e)) from None
     except ValueError as e:
         raise ClipError(f"{path}: truncated or corrupt .npy file ({e})") from None
     except OSError as e:

@@ -2,7 +2,8 @@
 
 A wrong joint map imports without an error but yields nonsense: with the wrong ``up`` axis the figure
 lies on its side or back (or stands on its head), with the wrong ``scale`` it is 150 m or 1.5 cm tall,
-with a joint mapped to the wrong source joint its bones stretch from frame to frame. The checks here
+with a joint mapped to the wrong source joint its bones stretch from frame to frame, and with left and right
+knees (or elbows) swapped they sit on the wrong sides of the body in every frame. The checks here
 measure each clip in lsgan's convention (Y up, metres, 20 fps, :data:`lsgan.data.skeleton.JOINT_NAMES`),
 compare the figures with human ranges held in :class:`Thresholds` and name the likely cause.
 
@@ -24,6 +25,8 @@ PELVIS, NECK, HEAD = 0, 12, 15
 FEET = (7, 8, 10, 11)  # ankles and toes
 ACROSS = ((2, 1), (17, 16))  # (right, left) hips and shoulders: right - left points to the body's right
 LEGS = ((4, 7), (5, 8))  # thigh and shin bones (indexed by child joint), left and right
+SIDES = {"knees": ((5, 4), (2, 1)), "elbows": ((19, 18), (17, 16))}  # (right, left) pair, and the (right, left)
+# pair whose line says where the body's right is: the hips for the knees, the shoulders for the elbows
 TRUNK = (3, 6, 9, 12, 15)  # pelvis -> spine1 -> spine2 -> spine3 -> neck -> head
 KINDS = ("scale", "up", "bones", "floor")
 CAUSES = {
@@ -51,6 +54,7 @@ class Thresholds:
     floor_quantile: float = 0.05  # floor = this quantile of the per-frame lowest joint (ignores glitches)
     min_contact_fraction: float = 0.2  # a foot near the floor in fewer frames: the figure floats
     max_head_height_rel: float = 1.5  # median head height above the floor; standing: 0.93-1.07
+    max_crossed_fraction: float = 0.5  # knees (elbows) on the wrong side of the hips (shoulders); real: 0
 
 
 DEFAULT_THRESHOLDS = Thresholds()
@@ -103,6 +107,15 @@ def bone_variation(lengths: np.ndarray, floor_rel: float = 0.1) -> tuple[float, 
     return float(cv[k]), max(k, 1)
 
 
+def crossed_fraction(joints: np.ndarray, pair: str) -> float:
+    """Fraction of frames whose right knee (``pair='knees'``) or elbow (``'elbows'``) lies to the body's left of
+    its left twin, the body's right taken from the hips (shoulders). Real mocap: 0; that pair's left and right
+    swapped in the joint map: 1. Legs crossed at the ankles do not count; knees pass each other only briefly."""
+    j = np.asarray(joints, dtype=np.float64)
+    (r, l), (ar, al) = SIDES[pair]
+    return float(np.mean(np.einsum("...i,...i->...", j[..., r, :] - j[..., l, :], j[..., ar, :] - j[..., al, :]) < 0))
+
+
 def clip_checks(joints: np.ndarray, thresholds: Thresholds = DEFAULT_THRESHOLDS) -> dict:
     """The plausibility figures of one clip, joints (T,22,3) in metres, Y up (T >= 1, finite).
 
@@ -112,7 +125,8 @@ def clip_checks(joints: np.ndarray, thresholds: Thresholds = DEFAULT_THRESHOLDS)
     ``contact_fraction`` (frames with a foot within ``contact_height_rel`` skeleton heights of the floor),
     ``head_height_m`` (median head height above the floor), ``head_above_pelvis_fraction``,
     ``upright_fraction`` / ``inverted_fraction`` (spine within 60 degrees of +Y / -Y),
-    ``vertical_facing_fraction`` (chest facing up or down), ``pelvis_rise_m`` (range of the pelvis height).
+    ``vertical_facing_fraction`` (chest facing up or down), ``pelvis_rise_m`` (range of the pelvis height),
+    ``knees_crossed_fraction`` / ``elbows_crossed_fraction`` (see :func:`crossed_fraction`).
     """
     j = np.asarray(joints, dtype=np.float64)
     if j.ndim != 3 or j.shape[1:] != (len(JOINT_NAMES), 3) or len(j) == 0:
@@ -136,6 +150,8 @@ def clip_checks(joints: np.ndarray, thresholds: Thresholds = DEFAULT_THRESHOLDS)
         "inverted_fraction": float(np.mean(cos < -thresholds.upright_cos)),
         "vertical_facing_fraction": float(np.mean(np.abs(facing(j)[:, 1]) > thresholds.vertical_facing_cos)),
         "pelvis_rise_m": float(np.ptp(y[:, PELVIS])),
+        "knees_crossed_fraction": crossed_fraction(j, "knees"),
+        "elbows_crossed_fraction": crossed_fraction(j, "elbows"),
     }
 
 
@@ -167,6 +183,11 @@ def _up_finding(c: Mapping, t: Thresholds) -> str | None:
 
 
 def _bones_finding(c: Mapping, t: Thresholds) -> str | None:
+    for pair, joint in (("knees", "knee"), ("elbows", "elbow")):
+        crossed = c.get(f"{pair}_crossed_fraction", 0.0)  # absent from the checks of older lsgan runs
+        if crossed >= t.max_crossed_fraction:
+            return (f"right {joint} on the body's left of the left {joint} in {_pct(crossed)} of frames: left and "
+                    f"right {pair} (or their parents) swapped in the joint map?")
     if c["bone_variation"] <= t.max_bone_variation:
         return None
     k = int(c["worst_bone"])
@@ -217,7 +238,8 @@ def summarise(checks_by_clip: Mapping[str, Mapping], thresholds: Thresholds = DE
             flagged[kind].append(name)
         if found:
             warnings[name] = [text for _, text in found]
-    keys = [k for k in next(iter(checks_by_clip.values()), {}) if k != "worst_bone"]
+    keys = [k for k in next(iter(checks_by_clip.values()), {})
+            if k != "worst_bone" and all(k in c for c in checks_by_clip.values())]
     ranges = {}
     for key in keys:
         v = np.array([float(c[key]) for c in checks_by_clip.values()])

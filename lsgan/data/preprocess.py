@@ -22,16 +22,17 @@ from pathlib import Path
 
 import numpy as np
 
-from lsgan import __version__
+from lsgan import __version__, outputs
 from lsgan.data.clip import Caption, ClipError, RawClip, mirror_caption, swap_left_right
 from lsgan.data.features import joints_to_features
 from lsgan.data.plausibility import clip_checks, summarise
 from lsgan.data.plausibility import format_summary as format_plausibility
 from lsgan.data.shards import FORMAT_VERSION, ClipRecord, write_shard
-from lsgan import outputs
-from lsgan.faults import fault_point
-from lsgan.io import atomic_file
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS, mirror_joints
+from lsgan.faults import fault_point
+from lsgan.interrupts import sigint_held
+from lsgan.io import atomic_file
+from lsgan.pickles import load_npz
 
 FORMATS = ("hdf5", "humanml3d")
 
@@ -219,19 +220,18 @@ def _save_chunk(path: Path, key: str, result: dict) -> None:
 
 
 def _load_chunk_meta(path: Path) -> dict:
-    with np.load(path, allow_pickle=False) as z:
-        return json.loads(str(z["meta"]))
+    return json.loads(str(load_npz(path, keys=("meta",))["meta"]))
 
 
 def _iter_records(paths: list[Path]) -> Iterator[ClipRecord]:
     for path in paths:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            for i, r in enumerate(meta["records"]):
-                yield ClipRecord(
-                    name=r["name"], features=z[f"f{i}"], split=r["split"], source_file=r["source_file"],
-                    captions=[Caption(*c) for c in r["captions"]], action=r["action"], mirror_of=r["mirror_of"],
-                )
+        z = load_npz(path)  # headers checked against the file before numpy allocates
+        meta = json.loads(str(z["meta"]))
+        for i, r in enumerate(meta["records"]):
+            yield ClipRecord(
+                name=r["name"], features=z[f"f{i}"], split=r["split"], source_file=r["source_file"],
+                captions=[Caption(*c) for c in r["captions"]], action=r["action"], mirror_of=r["mirror_of"],
+            )
         fault_point("preprocess.write")
 
 
@@ -270,26 +270,25 @@ def _open_staging(staging: Path, manifest: dict, keep: set[str]) -> None:
         if not staging.is_dir() or not (staging / "manifest.json").is_file():
             raise PreprocessError(f"{staging}: exists and is not lsgan's staging folder (no manifest.json); "
                                   "move it away")
-        outputs.sweep_folder_temps(staging)
+        outputs.sweep_temps(staging)
         for p in staging.glob("chunk_*.npz"):
             if p.name not in keep and outputs.is_ours(p):
-                p.unlink()
+                outputs.remove(p)
+    outputs.make_folder(staging)
     with atomic_file(staging / "manifest.json", "w", encoding="utf-8") as f:
         json.dump(manifest, f, indent=1)
 
 
 def _close_staging(staging: Path, paths: list[Path]) -> None:
-    """Remove the staging folder's own files, and the folder when nothing else is left in it."""
+    """Remove the staging folder's own files, and the folder when lsgan made it and nothing else is left."""
     for p in [*paths, staging / "manifest.json"]:
         if outputs.is_ours(p):
-            p.unlink()
-    outputs.sweep_folder_temps(staging)
-    if not any(p.name != outputs.REGISTRY for p in staging.iterdir()):
-        (staging / outputs.REGISTRY).unlink(missing_ok=True)
+            outputs.remove(p)
+    outputs.sweep_temps(staging)
     try:
-        staging.rmdir()
-    except OSError:
-        pass  # someone else's files are in it: leave them
+        outputs.remove(staging)
+    except outputs.OutputError:
+        pass  # someone else's files are in it, or lsgan did not make it: leave it
 
 
 def _claim(source, items: list[str], output: Path, format: str, report: Path, force: bool) -> None:
@@ -300,9 +299,9 @@ def _claim(source, items: list[str], output: Path, format: str, report: Path, fo
         outputs.claim_file(output, force=force, inputs=[*inputs, *(i for i in items if os.path.isfile(i))])
     else:
         outputs.claim_folder(output, force=force, inputs=inputs, whole=True)
-    if report.exists() and not outputs.is_ours(report):
-        raise outputs.OutputError(f"{report}: exists and is not a report lsgan wrote; give another --report path")
-    outputs.check_inputs(report, inputs)
+    outputs.check_inputs(report, [*inputs, output])
+    outputs.check_inputs(output, [report])
+    outputs.claim_file(report, force=force, inputs=inputs)
 
 
 def _run_chunks(source, plan: _Plan, paths: list[Path], todo: list[int], *, mirror, min_frames: int,
@@ -322,11 +321,12 @@ def _run_chunks(source, plan: _Plan, paths: list[Path], todo: list[int], *, mirr
             finished(k, process_chunk(source, plan.chunks[k], mirror, min_frames))
         return
     with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker) as pool:
-        futures = {k: pool.submit(process_chunk, source, plan.chunks[k], mirror, min_frames) for k in todo}
         try:
+            with sigint_held():  # the workers start here (one per submit): Ctrl-C is the main process's alone
+                futures = {k: pool.submit(process_chunk, source, plan.chunks[k], mirror, min_frames) for k in todo}
             for k in todo:
                 finished(k, futures[k].result())
-        except BaseException:
+        except BaseException:  # the workers end their current chunk and exit; the rest are never started
             pool.shutdown(wait=False, cancel_futures=True)
             raise
 
@@ -432,8 +432,9 @@ def _write_output(source, output: Path, format: str, paths: list[Path], metas: l
     stats_fn = getattr(source, "stats", None)
     stats = stats_fn() if callable(stats_fn) else None
     if format == "hdf5":
-        summary = write_shard(output, _iter_records(paths), source=source.name, action_names=action_names,
-                              provenance=provenance, stats=stats)
+        need = sum(p.stat().st_size for p in paths) + (1 << 20)  # the chunks hold the features uncompressed
+        summary = write_shard(output, _iter_records(paths), need_bytes=need, source=source.name,
+                              action_names=action_names, provenance=provenance, stats=stats)
     else:
         from lsgan.data.humanml3d_format import write_humanml3d_folder
 

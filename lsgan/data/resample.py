@@ -3,6 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 
+MAX_UPSAMPLING = 20.0
+"""Most a clip is upsampled: 1 fps to 20 fps (the slowest frame rate the BVH reader accepts). A larger factor
+is a wrong frame rate, and would allocate that many times the clip's frames (a 'Frame Time: 100000' read as
+0.00001 fps and resampled to 20 fps: 2,000,000 frames for each one)."""
+
 
 def resample(positions: np.ndarray, src_fps: float, dst_fps: float = 20.0) -> np.ndarray:
     """Resample (T, ...) positions from ``src_fps`` to ``dst_fps`` by linear interpolation in time.
@@ -11,8 +16,11 @@ def resample(positions: np.ndarray, src_fps: float, dst_fps: float = 20.0) -> np
     The output covers the same time span: frames at t = k / dst_fps for t <= (T-1) / src_fps.
     """
     x = np.asarray(positions)
-    if src_fps <= 0 or dst_fps <= 0:
+    if not (src_fps > 0 and dst_fps > 0):  # also NaN
         raise ValueError(f"frame rates must be positive, got {src_fps} -> {dst_fps}")
+    if dst_fps / src_fps > MAX_UPSAMPLING:
+        raise ValueError(f"resampling {src_fps:g} fps to {dst_fps:g} fps would multiply the frames by more than "
+                         f"{MAX_UPSAMPLING:g}: a wrong frame rate?")
     if len(x) == 0:
         return x.copy()
     ratio = src_fps / dst_fps

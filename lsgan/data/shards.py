@@ -29,13 +29,16 @@ Version 1 files made from HumanML3D counted a caption with one NaN tag as whole-
 span_frames): preprocess again to get those spans.
 
 A file that cannot be read or written raises :class:`DataFileError` (a ValueError), one line that
-starts with the file's path.
+starts with the file's path. Every HDF5 file lsgan reads is opened by :func:`open_hdf5`, which refuses data
+from outside the file (external storage, external links, virtual datasets) and datasets declaring more than
+the file can hold; a shard's clip table is checked against its features when it is opened.
 """
 from __future__ import annotations
 
 import json
 import os
 import re
+import shutil
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -48,7 +51,7 @@ from lsgan import __version__
 from lsgan.data.clip import Caption
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS
 from lsgan.data.tokens import tokenize
-from lsgan.io import atomic_path, publish
+from lsgan.io import atomic_path, discard, publish
 
 FORMAT = "lsgan-motion-shard"
 FORMAT_VERSION = 2
@@ -59,6 +62,14 @@ _DATASETS = ("features", "clips/name", "clips/offset", "clips/length", "clips/sp
              "clips/source_file", "clips/mirror_of", "captions/clip", "captions/text", "captions/tokens",
              "captions/start", "captions/end", "stats/mean", "stats/std")
 _ATTRS = ("format_version", "source", "fps", "action_names")
+_CLIP_COLUMNS = ("offset", "length", "split", "action", "source_file", "mirror_of")
+_CAPTION_COLUMNS = ("text", "tokens", "start", "end")
+
+MAX_COMPRESSED_BYTES = 64 << 30
+"""Most bytes (64 GiB) a compressed (chunked and filtered) dataset may declare: such a dataset may rightly hold
+more than the file's size, so the file cannot bound it. About 10x the largest dataset lsgan imports: all of
+AMASS (some 40 hours, 2.9 M frames at 20 fps), mirrored, is 5.8 M frames of 263 float32, about 6 GB of
+features. Any other dataset may declare at most the file's size."""
 
 
 class DataFileError(ValueError):
@@ -72,7 +83,7 @@ class DataFileError(ValueError):
         marker = f"{type(self).__module__}.{type(self).__qualname__}: "
         if message.startswith("Caught ") and marker in message:
             message = message[message.rindex(marker) + len(marker):].strip()
-        super().__init__(message)
+        super().__init__(re.sub(r"\s*\n\s*", " ", message))  # one line, whatever a name read from the file holds
 
 
 def _reason(e: BaseException) -> str:
@@ -83,9 +94,10 @@ def _reason(e: BaseException) -> str:
 
 
 def open_hdf5(path: str | os.PathLike) -> h5py.File:
-    """Open an HDF5 file to read, or raise DataFileError saying plainly why it cannot be."""
+    """Open an HDF5 file to read, or raise DataFileError saying plainly why it cannot be (including data from
+    outside the file and datasets larger than it can hold: see :func:`check_storage`)."""
     try:
-        return h5py.File(path, "r")
+        f = h5py.File(path, "r")
     except FileNotFoundError:
         raise DataFileError(f"{path}: no such file") from None
     except IsADirectoryError:
@@ -97,6 +109,74 @@ def open_hdf5(path: str | os.PathLike) -> h5py.File:
         if "file signature not found" in reason:
             raise DataFileError(f"{path}: not an HDF5 file") from None
         raise DataFileError(f"{path}: truncated or corrupt HDF5 ({reason})") from None
+    try:
+        with reading(path, "an HDF5 file lsgan reads"):
+            check_storage(f, path)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def check_storage(f: h5py.File, path: str | os.PathLike) -> None:
+    """Refuse (DataFileError) external links, and datasets with external storage, virtual datasets or a declared
+    size beyond what the file can hold (:func:`_check_dataset`): HDF5 would read other files on the machine, or
+    fill gigabytes with nothing, when asked for them."""
+    size = os.path.getsize(path)
+    objects: list[str] = []
+    external: list[tuple[str, h5py.ExternalLink]] = []
+
+    def look(name: str, link) -> bool | None:  # raising in here is lost in h5py's C callback: stop, then raise
+        if isinstance(link, h5py.ExternalLink):
+            external.append((name, link))
+            return True
+        if isinstance(link, h5py.HardLink):
+            objects.append(name)
+        return None
+
+    f.visititems_links(look)
+    if external:
+        name, link = external[0]
+        raise DataFileError(f"{path}: refused: {name} is an external link to {link.filename}:{link.path} "
+                            "(lsgan reads only what is inside the file)")
+    for name in ["/", *objects]:
+        obj = f[name]
+        _check_attributes(obj, name, path, size)
+        if isinstance(obj, h5py.Dataset):
+            _check_dataset(obj, name, path, size)
+
+
+def _declared_bytes(shape: tuple[int, ...] | None, type_id) -> int:
+    """Bytes a dataset or attribute of ``shape`` (None: empty) and HDF5 type claims (variable-length: 16 each)."""
+    return 0 if shape is None else int(np.prod(shape, dtype=object)) * type_id.get_size()
+
+
+def _check_attributes(obj, name: str, path: str | os.PathLike, file_size: int) -> None:
+    """Attributes are read whole: none may declare more bytes than the file holds."""
+    for key in obj.attrs:
+        attr = obj.attrs.get_id(key)
+        declared = _declared_bytes(attr.shape, attr.get_type())
+        if declared > file_size:
+            raise DataFileError(f"{path}: refused: attribute {key} of {name} declares {declared:,} bytes, more than "
+                                f"the file's {file_size:,}")
+
+
+def _check_dataset(ds: h5py.Dataset, name: str, path: str | os.PathLike, file_size: int) -> None:
+    """Data from the file only, and no more than it can hold: the file's size, or MAX_COMPRESSED_BYTES when
+    compressed (a compressed dataset may rightly hold more than the file)."""
+    if ds.is_virtual:
+        raise DataFileError(f"{path}: refused: dataset {name} is virtual (it maps data from other files)")
+    if ds.external:
+        files = ", ".join(sorted({str(e[0]) for e in ds.external}))
+        raise DataFileError(f"{path}: refused: dataset {name} keeps its data in other files ({files})")
+    declared = _declared_bytes(ds.shape, ds.id.get_type())
+    filtered = ds.id.get_create_plist().get_nfilters() > 0
+    limit = MAX_COMPRESSED_BYTES if filtered else file_size
+    if declared > limit:
+        what = f"the {MAX_COMPRESSED_BYTES:,}-byte limit of compressed data" if filtered else \
+            f"the file's {file_size:,} bytes"
+        raise DataFileError(f"{path}: refused: dataset {name} declares {ds.shape} items, {declared:,} bytes, more "
+                            f"than {what}")
 
 
 @contextmanager
@@ -145,6 +225,15 @@ def check_writable(path: str | os.PathLike) -> None:
             raise DataFileError(f"{path}: cannot write ({folder} is a file, not a folder)")
         if not os.access(folder, os.W_OK | os.X_OK):
             raise DataFileError(f"{path}: cannot write (permission denied)")
+
+
+def check_space(path: Path, need_bytes: int) -> None:
+    """Refuse (DataFileError) writing ``need_bytes`` beside ``path`` when the disk has less free space."""
+    folder = next(p for p in [path.parent, *path.parents] if p.exists())
+    free = shutil.disk_usage(folder).free
+    if need_bytes > free:
+        raise DataFileError(f"{path}: disk full: writing it needs up to {need_bytes / 1e6:,.1f} MB and "
+                            f"{folder.resolve()} has {free / 1e6:,.1f} MB free")
 
 
 @contextmanager
@@ -226,12 +315,16 @@ def _write_tables(f: h5py.File, cols: dict[str, list], caps: dict[str, list], st
 
 
 @contextmanager
-def hdf5_output(path: str | os.PathLike, **options) -> Iterator[h5py.File]:
+def hdf5_output(path: str | os.PathLike, need_bytes: int = 0, **options) -> Iterator[h5py.File]:
     """An HDF5 file (h5py ``options``) open for writing beside ``path``; it replaces ``path`` when the block ends
     without error, and on any error (or Ctrl-C) it is removed and ``path`` is left as it was. Failing to create or
-    rename it raises a DataFileError naming ``path``."""
+    rename it raises a DataFileError naming ``path``.
+
+    ``need_bytes``: what the file will take at most; less free space is refused before HDF5 starts, because
+    h5py crashes the process (SIGSEGV in its own error path) when the disk fills during a write."""
     path = Path(path)
     check_writable(path)
+    check_space(path, need_bytes)
     with writing(path):
         fd, tmp = atomic_path(path)
     os.close(fd)
@@ -241,7 +334,7 @@ def hdf5_output(path: str | os.PathLike, **options) -> Iterator[h5py.File]:
         with writing(path):
             publish(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        discard(tmp)
         raise
 
 
@@ -302,13 +395,15 @@ def write_shard(
     action_names: list[str],
     provenance: dict,
     stats: tuple[np.ndarray, np.ndarray] | None = None,
+    need_bytes: int = 0,
 ) -> dict:
-    """Write clips (streamed, in order) to an HDF5 shard atomically; returns a summary.
+    """Write clips (streamed, in order) to an HDF5 shard atomically; returns a summary. ``need_bytes``: an upper
+    bound of its size, checked against the free space first (see :func:`hdf5_output`).
 
     ``stats`` keeps given Mean/Std (a processed HumanML3D folder's own); otherwise they are computed
     on the train split with HumanML3D's rule (per-feature mean; std averaged within each group).
     """
-    with hdf5_output(path, track_order=True) as f:
+    with hdf5_output(path, need_bytes, track_order=True) as f:
         w = _ShardWriter(f, action_names, compute_stats=stats is None)
         for clip in clips:
             w.add(clip)
@@ -333,6 +428,51 @@ def _read_captions(f: h5py.File, clips: int, version: int) -> list[list[Caption]
     for i, c in enumerate(f["captions/clip"][()]):
         captions[c].append(Caption(texts[i], tokens[i], float(starts[i]), float(ends[i])))
     return captions
+
+
+def _table_problem(f: h5py.File, names: list[str], offsets: np.ndarray, lengths: np.ndarray, actions: np.ndarray,
+                   num_actions: int) -> str | None:
+    """What is wrong with a shard's clip columns against its features, in words naming the clip; None if nothing."""
+    n = len(names)
+    for col in _CLIP_COLUMNS:
+        if f[f"clips/{col}"].shape != (n,):
+            return f"clips/{col} has shape {f[f'clips/{col}'].shape}, clips/name ({n},): a damaged clip table"
+    if any(a.dtype.kind not in "iu" for a in (offsets, lengths, actions)):
+        return "clips/offset, clips/length and clips/action must hold integers"
+    rows = f["features"].shape[0] if f["features"].ndim == 2 else 0
+    checks = ((offsets < 0, "offset {o} is negative"), (lengths < 1, "length {k} is not a positive frame count"),
+              (offsets.astype(np.int64) + lengths > rows, "frames {o}-{e} lie outside the {rows} rows of features"),
+              ((actions < -1) | (actions >= num_actions), "action {a} is not an index into the {na} action names"))
+    for bad, text in checks:
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            o, k = int(offsets[i]), int(lengths[i])
+            return f"clip {names[i]} (index {i}): " + text.format(o=o, k=k, e=o + k, rows=rows, a=int(actions[i]),
+                                                                   na=num_actions)
+    return None
+
+
+def _widths_problem(f: h5py.File) -> str | None:
+    """The features and statistics must be FEATURE_DIM wide."""
+    want = {"features": (None, FEATURE_DIM), "stats/mean": (FEATURE_DIM,), "stats/std": (FEATURE_DIM,)}
+    for name, shape in want.items():
+        got = f[name].shape
+        if got is None or len(got) != len(shape) or any(w is not None and g != w for g, w in zip(got, shape)):
+            form = f"(frames, {FEATURE_DIM})" if name == "features" else f"({FEATURE_DIM},)"
+            return f"{name} has shape {got}, the format says {form}"
+    return None
+
+
+def _captions_problem(f: h5py.File, clips: int) -> str | None:
+    """Caption columns of one length whose clip indices exist."""
+    m = f["captions/clip"].shape
+    for col in _CAPTION_COLUMNS:
+        if f[f"captions/{col}"].shape != m:
+            return f"captions/{col} has shape {f[f'captions/{col}'].shape}, captions/clip {m}: a damaged caption table"
+    clip = f["captions/clip"][()]
+    if clip.dtype.kind not in "iu" or (len(clip) and (clip.min() < 0 or clip.max() >= clips)):
+        return f"captions/clip holds indices outside the {clips} clips"
+    return None
 
 
 class Shard:
@@ -370,12 +510,22 @@ class Shard:
         self.mean = f["stats/mean"][()]
         self.std = f["stats/std"][()]
         self.stats_origin = f["stats"].attrs.get("origin", "")
+        self._check_table(f)
         self._captions = _read_captions(f, len(self.names), int(f.attrs["format_version"]))
         self._features = f["features"]
         self._compressed = self._features.compression is not None
         if in_memory:
             self._features = self.all_features()
         self.attrs = dict(f.attrs)
+
+    def _check_table(self, f: h5py.File) -> None:
+        """Refuse (DataFileError) a clip table that does not fit the format: columns of one length, every clip's
+        frames inside /features, widths of 263, actions and caption clips that exist."""
+        problem = (_widths_problem(f)
+                   or _table_problem(f, self.names, self.offsets, self.lengths, self.actions, len(self.action_names))
+                   or _captions_problem(f, len(self.names)))
+        if problem is not None:
+            raise DataFileError(f"{self.path}: {problem}")
 
     def all_features(self) -> np.ndarray:
         """Every clip's frames, concatenated as stored: (num_frames, 263) float32, read at once (or the copy an

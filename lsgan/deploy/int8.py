@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from lsgan.generation import Request
-from lsgan.io import atomic_path, publish
+from lsgan.io import atomic_path, discard, publish
 
 QUANTISED = ("decoder",)
 WEIGHT_TYPE = "QInt8"
@@ -82,7 +82,7 @@ def quantise(src: Path, dst: Path, *, weights: str = DECODER_INT8, weight_type: 
                          nodes_to_quantize=nodes)
         publish(tmp, dst)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        discard(tmp)
         raise
     finally:
         logging.getLogger().setLevel(quiet)

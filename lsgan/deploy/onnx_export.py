@@ -40,7 +40,7 @@ from lsgan.data.skeleton import FPS
 from lsgan.deploy import int8 as q
 from lsgan.deploy.manifest import FORMAT, FORMAT_VERSION, MANIFEST, file_entry
 from lsgan.deploy.rewrite import gelu_in_fusable_order
-from lsgan.io import atomic_file, atomic_path, publish
+from lsgan.io import atomic_file, atomic_path, discard, publish
 
 OPSET = 18  # the dynamo exporter's lowest
 _EXAMPLE_BATCH, _EXAMPLE_TOKENS, _EXAMPLE_FRAMES = 3, 9, 64  # traced sizes; every axis is dynamic
@@ -207,7 +207,7 @@ def export_graph(module: nn.Module, args: tuple, dynamic: dict, output: str, pat
         program.save(tmp, external_data=False)
         publish(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        discard(tmp)
         raise
     return {"inputs": _signature(graph.inputs), "outputs": _signature(graph.outputs)}
 

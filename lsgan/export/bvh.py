@@ -268,7 +268,14 @@ def load_motion_joints(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
         return [item for f in files for item in load_motion_joints(f)]
     array = load_npy(path)
     if array.ndim == 3 and array.shape[1:] == (NUM_JOINTS, 3):
-        return [(path.stem, array.astype(np.float32))]
-    if array.ndim == 2 and array.shape[1] == FEATURE_DIM:
-        return [(path.stem, recover_from_ric(array.astype(np.float32)))]
-    raise ValueError(f"{path}: expected joints (T, 22, 3) or features (T, 263), got an array of shape {array.shape}")
+        joints = array.astype(np.float32)
+    elif array.ndim == 2 and array.shape[1] == FEATURE_DIM:
+        joints = recover_from_ric(array.astype(np.float32)) if len(array) else array.reshape(0, NUM_JOINTS, 3)
+    else:
+        raise ValueError(f"{path}: expected joints (T, 22, 3) or features (T, 263), got an array of shape "
+                         f"{array.shape}")
+    if not len(joints):
+        raise ValueError(f"{path}: holds no frames")
+    if not np.isfinite(joints).all():
+        raise ValueError(f"{path}: holds NaN or infinite values")
+    return [(path.stem, joints)]

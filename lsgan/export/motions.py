@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lsgan import outputs
+from lsgan.errors import reading
 from lsgan.data.skeleton import FEATURE_DIM
 from lsgan.export.bvh import load_motion_joints
 
@@ -36,8 +37,9 @@ def manifest_titles(source: Path) -> dict[str, str]:
     manifest = source / "manifest.json" if source.is_dir() else source.parent / "manifest.json"
     if not manifest.exists():
         return {}
-    entries = json.loads(manifest.read_text()).get("motions", [])
-    return {e["joints"].removesuffix("_joints.npy"): e.get("text") or e.get("action") or "" for e in entries}
+    with reading(manifest, "a manifest lsgan generate wrote"):
+        entries = json.loads(manifest.read_text(encoding="utf-8")).get("motions", [])
+        return {e["joints"].removesuffix("_joints.npy"): str(e.get("text") or e.get("action") or "") for e in entries}
 
 
 def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: float = 20.0,

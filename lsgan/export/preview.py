@@ -24,7 +24,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lsgan.data.skeleton import KINEMATIC_CHAIN, NUM_JOINTS
-from lsgan.io import atomic_file, atomic_path, publish
+from lsgan.io import atomic_file, atomic_path, discard, publish
 
 BACKGROUND = (255, 255, 255)
 GRID_COLOUR = (205, 205, 205)
@@ -343,6 +343,6 @@ def write_mp4(path, joints, *, title: str = "", fps: float = 20.0, size: int = 4
                 raise EncodeError(f"ffmpeg failed (exit code {code}) writing {path}: {message}")
         publish(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        discard(tmp)
         raise
     return path

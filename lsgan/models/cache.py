@@ -143,6 +143,9 @@ def read_latent_cache(
     with open_hdf5(path) as f, reading(path, _CACHE):
         check_layout(f, path, _CACHE, FORMAT, FORMAT_VERSION, _DATASETS, _ATTRS, _HINT)
         attrs = dict(f.attrs)
+        problem = _cache_problem(f, attrs)
+        if problem is not None:
+            raise DataFileError(f"{path}: {problem}")
         if expect_vae_hash is not None and attrs["vae_hash"] != expect_vae_hash:
             raise StaleCache(
                 f"{path} was encoded with another VAE checkpoint (weights {attrs['vae_hash'][:12]}..., "
@@ -170,6 +173,34 @@ def read_latent_cache(
             text_encoder=str(attrs["text_encoder"]),
             attrs=attrs,
         )
+
+
+def _cache_problem(f: h5py.File, attrs: dict) -> str | None:
+    """What is wrong with a cache's tables, in words; None if nothing: one row per window in every clip column and
+    latent, latent and text widths as the attributes say, positive lengths, actions and caption clips that exist."""
+    n, m = f["clips/name"].shape[0], f["captions/clip"].shape[0]
+    z = int(attrs.get("latent_dim", f["latents/mu"].shape[-1]))
+    d = int(attrs.get("text_dim", f["captions/embedding"].shape[-1]))
+    want = {"clips/split": (n,), "clips/action": (n,), "clips/length": (n,), "latents/mu": (n, z),
+            "latents/logvar": (n, z), "captions/text": (m,), "captions/embedding": (m, d), "stats/mean": (z,),
+            "stats/std": (z,)}
+    for name, shape in want.items():
+        if f[name].shape != shape:
+            return f"{name} has shape {f[name].shape}, expected {shape} ({n} windows, {m} captions, latent width " \
+                   f"{z}, text width {d})"
+    lengths, actions, clip = f["clips/length"][()], f["clips/action"][()], f["captions/clip"][()]
+    num_actions = len(json.loads(attrs["action_names"]))
+    if any(a.dtype.kind not in "iu" for a in (lengths, actions, clip)):
+        return "clips/length, clips/action and captions/clip must hold integers"
+    checks = ((lengths < 1, "window {i} has length {v}, not a positive frame count", lengths),
+              ((actions < -1) | (actions >= num_actions), f"window {{i}} has action {{v}}, not an index into the "
+                                                           f"{num_actions} action names", actions),
+              ((clip < 0) | (clip >= n), f"caption {{i}} belongs to window {{v}}, outside the {n} windows", clip))
+    for bad, text, values in checks:
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            return text.format(i=i, v=int(values[i]))
+    return None
 
 
 def _recorded_vae(cache: Path, recorded: str) -> Path | None:

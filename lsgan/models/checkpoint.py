@@ -5,6 +5,7 @@
     run/last/model.safetensors   weights (never pickled)
     run/last/config.json         {"kind", "config", "step", "lsgan_version", "extra"}
     run/last/state.pt            optimiser/scheduler/RNG state, read with torch.load(weights_only=True)
+                                 after lsgan.pickles has scanned its pickle for bounds
     run/best/...                 the same for the best checkpoint so far (by the run's validation metric)
 
 Each folder is written beside its final place and renamed, so a crash never leaves half a checkpoint.
@@ -16,8 +17,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import pickle
-import re
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +27,7 @@ from safetensors.torch import load_file, save_file
 from lsgan import __version__
 from lsgan.faults import fault_point
 from lsgan.io import atomic_folder
+from lsgan.pickles import load_torch
 
 WEIGHTS, CONFIG, STATE = "model.safetensors", "config.json", "state.pt"
 
@@ -98,34 +98,10 @@ def load_weights(path: str | os.PathLike, prefer: str = "best", kind: str | None
     return _read_weights(folder), meta
 
 
-def _torch_error_detail(text: str) -> str:
-    """The cause in one of torch's load errors, without its advice to load the file with weights_only=False."""
-    found = re.search(r"GLOBAL (\S+)", text)
-    if found:
-        return found.group(1)
-    lines = [ln.strip() for ln in text.replace("WeightsUnpickler error:", "\n").splitlines()]
-    lines = [ln for ln in lines if ln and not re.search(r"weights_only|torch\.load|pytorch\.org", ln)]
-    return (lines[0] if lines else "no detail")[:200]
-
-
 def load_torch_file(path: str | os.PathLike) -> Any:
-    """``torch.load(path, weights_only=True)`` on the CPU; ValueError naming the file when it is refused or damaged."""
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        detail = _torch_error_detail(str(exc))
-        if re.search(r"GLOBAL|Unsupported (global|class)|blocked|not an allowed", str(exc)):
-            raise ValueError(f"{path}: refused: it holds objects other than tensors and plain values "
-                             f"({detail})") from None
-        raise ValueError(f"{path}: truncated or corrupt ({detail})") from None
-    except RuntimeError as exc:
-        if "TorchScript" in str(exc):
-            raise ValueError(f"{path}: refused: it is a TorchScript archive, not tensors and plain values") from None
-        raise ValueError(f"{path}: truncated or corrupt ({_torch_error_detail(str(exc))})") from None
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read it ({exc.strerror or exc})") from exc
-    except Exception as exc:  # noqa: BLE001 - whatever else a damaged file raises (EOFError, KeyError...)
-        raise ValueError(f"{path}: truncated or corrupt ({type(exc).__name__}: {exc})") from None
+    """``torch.load(path, weights_only=True)`` on the CPU, through :func:`lsgan.pickles.load_torch` (its pickles
+    scanned for bounds first); a ValueError naming the file when it is refused or damaged."""
+    return load_torch(path)
 
 
 def load_state(path: str | os.PathLike, prefer: str = "last") -> dict | None:
@@ -133,7 +109,45 @@ def load_state(path: str | os.PathLike, prefer: str = "last") -> dict | None:
     folder = resolve(path, prefer)
     if not (folder / STATE).exists():
         return None
-    return load_torch_file(folder / STATE)
+    return check_state(load_torch_file(folder / STATE), folder / STATE, _read_config(folder).get("kind"))
+
+
+# The optimisers (by their key in state.pt) and batch position each trainer saves, beside step, best, val and rng.
+STATE_KEYS = {"vae": ("optimizer", "epoch", "batches_done"), "evaluator": ("optimizer", "epoch", "batches_done"),
+              "action-classifier": ("optimizer", "epoch", "batches_done"), "gan": ("opt_g", "opt_d"),
+              "diffusion": ("opt",)}
+_STATE_TYPES = {"step": int, "epoch": int, "batches_done": int, "threads": int, "best": (int, float), "val": dict,
+                "rng": (list, torch.Tensor)}
+
+
+def check_state(state: Any, path: str | os.PathLike, kind: str | None = None) -> dict:
+    """``state`` if it is the training state lsgan saves for a ``kind`` checkpoint (today's layout or the one
+    before the trainers shared a loop), else a ValueError naming ``path`` and what is missing or wrong, so that
+    resuming never fails inside the trainer on a damaged or foreign state.pt."""
+    def bad(problem: str) -> ValueError:
+        return ValueError(f"{path}: not a training state lsgan wrote ({problem}): the run cannot be resumed from it")
+
+    if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+        raise bad(f"it holds a {type(state).__name__}, not a dictionary of named entries")
+    best = next((k for k in ("best", "best_val_mpjpe_m", "best_fid") if k in state), "best")
+    wanted = [*STATE_KEYS[kind], "rng", best, *(() if best == "best_fid" else ("step",))] if kind in STATE_KEYS else []
+    missing = [k for k in wanted if k not in state]
+    if missing:
+        raise bad(f"no {', '.join(repr(k) for k in missing)}")
+    for key, value in state.items():
+        expected = _STATE_TYPES.get(key)
+        if expected is not None and (not isinstance(value, expected) or isinstance(value, bool)):
+            raise bad(f"{key!r} is a {type(value).__name__}")
+    for key in STATE_KEYS.get(kind, ()):
+        opt = state[key]
+        if key.startswith("opt") and not (isinstance(opt, dict) and isinstance(opt.get("state"), dict)
+                                          and isinstance(opt.get("param_groups"), list)):
+            raise bad(f"{key!r} is not an optimiser's state")
+    rngs = state.get("rng")
+    if isinstance(rngs, list) and not all(isinstance(r, dict) and isinstance(r.get("torch"), torch.Tensor)
+                                          for r in rngs):
+        raise bad("'rng' is not a list of random-generator states")
+    return state
 
 
 def weights_hash(path: str | os.PathLike, prefer: str = "best") -> str:

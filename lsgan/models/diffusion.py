@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from lsgan.errors import checkpoint_reader
 from lsgan.models.checkpoint import load_weights
 from lsgan.models.gan import destandardise  # noqa: F401  (re-exported: the same latent space as the GANs')
 from lsgan.models.vae import PositionalEncoding, SkipTransformer
@@ -258,6 +259,7 @@ def diffusion_loss(model: LatentDiffusion, z0: torch.Tensor, cond: torch.Tensor,
     return F.mse_loss(pred, eps if cfg.prediction == "epsilon" else z0)
 
 
+@checkpoint_reader
 def load_diffusion(
     path: str | os.PathLike, device: str | torch.device = "cpu", prefer: str = "best"
 ) -> tuple[LatentDiffusion, dict]:

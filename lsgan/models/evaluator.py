@@ -60,9 +60,8 @@ from torch.nn.utils.rnn import pack_padded_sequence
 
 from lsgan.data.skeleton import FEATURE_DIM, NUM_JOINTS
 from lsgan.data.tokens import tokenize
-from lsgan.models.checkpoint import load_torch_file
 from lsgan.outputs import file_sha256
-from lsgan.pickles import load_pickle
+from lsgan.pickles import load_npy, load_pickle, load_torch
 
 __all__ = [
     "MAX_TEXT_LEN",
@@ -235,10 +234,7 @@ class WordVectorizer:
     def __init__(self, folder: str | os.PathLike, prefix: str = "our_vab") -> None:
         folder = Path(folder)
         data_path = folder / f"{prefix}_data.npy"
-        try:
-            vectors = np.load(data_path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"{data_path}: not a readable .npy array ({e})") from e
+        vectors = load_npy(data_path)
         words = load_pickle(folder / f"{prefix}_words.pkl")
         word2idx = load_pickle(folder / f"{prefix}_idx.pkl")
         if vectors.ndim != 2:
@@ -505,11 +501,11 @@ def load_t2m_evaluator(root: str | os.PathLike, device: str | torch.device = "cp
     if missing:
         raise FileNotFoundError(f"{root}: the official T2M evaluator needs these files, missing: "
                                 + ", ".join(str(p) for p in missing))
-    ckpt = load_torch_file(paths["weights"])
+    ckpt = load_torch(paths["weights"])
     if not isinstance(ckpt, dict):
         raise ValueError(f"{paths['weights']}: expected a dict of state dicts, got {type(ckpt).__name__}")
     text, movement, motion = _infer_t2m_modules(ckpt, paths["weights"])
-    mean, std = (np.load(paths[k], allow_pickle=False).astype(np.float32) for k in ("mean", "std"))
+    mean, std = (load_npy(paths[k]).astype(np.float32) for k in ("mean", "std"))
     for k, v in (("mean", mean), ("std", std)):
         if v.shape != (FEATURE_DIM,):
             raise ValueError(f"{paths[k]}: shape {v.shape}, expected ({FEATURE_DIM},)")

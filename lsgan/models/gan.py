@@ -24,6 +24,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from lsgan.errors import checkpoint_reader
 from lsgan.models.checkpoint import load_weights, unwrap
 
 ArrayLike = Sequence[float] | np.ndarray | torch.Tensor
@@ -277,6 +278,7 @@ def destandardise(z: torch.Tensor, mean: ArrayLike, std: ArrayLike) -> torch.Ten
     return z * std + mean
 
 
+@checkpoint_reader
 def load_gan(
     path: str | os.PathLike, device: str | torch.device = "cpu", prefer: str = "best"
 ) -> tuple[LatentGAN, dict]:

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from lsgan.errors import checkpoint_reader
 from lsgan.models.attention import attend
 from lsgan.models.checkpoint import load_weights
 
@@ -236,6 +237,7 @@ def vae_loss(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar: tor
     return {"total": recon + kl_weight * kl, "recon": recon, "kl": kl}
 
 
+@checkpoint_reader
 def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu", prefer: str = "best") -> tuple[MotionVAE, dict]:
     """A trained VAE (eval mode) from a checkpoint folder or run folder, and its meta.
 
@@ -246,6 +248,6 @@ def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu", prefer
     model = MotionVAE(VAEConfig(**meta["config"]["model"]))
     model.load_state_dict(state)
     extra = meta.get("extra", {})
-    meta["mean"] = np.asarray(extra["mean"], np.float32)
-    meta["std"] = np.asarray(extra["std"], np.float32)
+    meta["mean"] = np.asarray(extra["mean"], np.float32).reshape(model.config.nfeats)
+    meta["std"] = np.asarray(extra["std"], np.float32).reshape(model.config.nfeats)
     return model.to(device).eval(), meta

@@ -26,6 +26,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from lsgan.interrupts import sigint_held
 from lsgan.serve.engine import Engine, Item, Result
 
 _SIZES = struct.Struct("<II")  # header bytes, payload bytes
@@ -92,9 +93,10 @@ class EngineProcess(Engine):
     def __init__(self, **load_args) -> None:
         from_server, to_child = os.pipe()  # (read end, write end)
         from_child, to_server = os.pipe()
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "lsgan.serve.worker", str(from_server), str(to_server), json.dumps(load_args)],
-            pass_fds=(from_server, to_server), stdin=subprocess.DEVNULL)
+        with sigint_held():  # Ctrl-C is the server's alone, also while the child starts (before it ignores it)
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "lsgan.serve.worker", str(from_server), str(to_server), json.dumps(load_args)],
+                pass_fds=(from_server, to_server), stdin=subprocess.DEVNULL)
         os.close(from_server)
         os.close(to_server)
         self._out, self._in = os.fdopen(to_child, "wb"), os.fdopen(from_child, "rb")

@@ -2,12 +2,14 @@
 CSV/TensorBoard logs, the NaN check and the run folder's claim."""
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
+import io
 import math
 import os
 import random
-import shutil
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -139,56 +141,88 @@ def check_finite(losses: dict[str, float], step: int) -> None:
 
 
 class RunLog:
-    """Append rows of scalars to ``log.csv`` (and TensorBoard when it is installed). Rank 0 only."""
+    """Rows of scalars in ``log.csv`` (and TensorBoard when it is installed). Rank 0 only.
+
+    The whole file is rewritten atomically at each row (a run's log is small), never appended in place: a
+    hard-linked snapshot of the run keeps its bytes, and a kill leaves the last complete file.
+    """
 
     def __init__(self, folder: str | os.PathLike, enabled: bool = True, tensorboard: bool = True) -> None:
         self.enabled = enabled
         self.path = Path(folder) / "log.csv"
-        self._fields: list[str] | None = None
-        self._tb = None
+        self._fields: list[str] = []
+        self._rows: list[dict] = []
+        self._tb = self._tb_dir = None
         if not enabled:
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists():
-            with open(self.path, newline="") as f:
-                self._fields = next(csv.reader(f), None)
+            self._fields, self._rows = read_log(self.path)
         if tensorboard:
-            try:
-                from torch.utils.tensorboard import SummaryWriter
+            self._open_tensorboard(Path(folder) / "tb")
 
-                self._tb = SummaryWriter(str(Path(folder) / "tb"))
-            except ImportError:
-                self._tb = None
+    def _open_tensorboard(self, tb: Path) -> None:
+        """A SummaryWriter in a folder of its own under ``tb/`` for this process (recorded at each flush)."""
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            return
+        self._tb_dir = outputs.make_folder(tb / f"run-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}")
+        self._tb = SummaryWriter(str(self._tb_dir))
+
+    def truncate(self, step: int) -> None:
+        """Drop the rows past ``step`` (written after the checkpoint a run resumes from)."""
+        if self.enabled and self.path.exists():
+            self._rows = [r for r in self._rows if float(r["step"]) <= step]
+            self._save()
 
     def write(self, step: int, **scalars: float) -> None:
         if not self.enabled:
             return
         row = {"step": step, **{k: float(v) for k, v in scalars.items()}}
-        if self._fields is None:
-            self._fields = list(row)
-            with open(self.path, "w", newline="") as f:
-                csv.writer(f).writerow(self._fields)
-        for k in row:
-            if k not in self._fields:  # a new column: rewrite the header, keeping the rows
-                self._fields.append(k)
-                rows = list(csv.DictReader(open(self.path, newline="")))
-                with open(self.path, "w", newline="") as f:
-                    w = csv.DictWriter(f, self._fields)
-                    w.writeheader()
-                    w.writerows(rows)
-        with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, self._fields).writerow(row)
+        self._fields += [k for k in row if k not in self._fields]
+        self._rows.append(row)
+        self._save()
         if self._tb is not None:
             for k, v in scalars.items():
                 self._tb.add_scalar(k, float(v), step)
+            self._tb.flush()
+            outputs.record(self._tb_dir)
+
+    def _save(self) -> None:
+        text = io.StringIO()
+        w = csv.DictWriter(text, self._fields, lineterminator="\n")
+        w.writeheader()
+        w.writerows(self._rows)
+        outputs.replace_by(self.path, text.getvalue())
 
     def close(self) -> None:
         if self._tb is not None:
             self._tb.close()
+            outputs.record(self._tb_dir)
+
+
+def read_log(path: Path) -> tuple[list[str], list[dict]]:
+    """``log.csv``'s columns and rows; a file lsgan cannot have written is refused naming the line."""
+    with open(path, newline="", encoding="utf-8", errors="replace") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return [], []
+    fields = rows[0]
+    if not fields or fields[0] != "step":
+        raise outputs.OutputError(f"{path}: not a training log (its first column is not 'step'); move it away")
+    out = []
+    for line, r in enumerate(rows[1:], 2):
+        try:
+            float(r[0])
+        except (IndexError, ValueError):
+            raise outputs.OutputError(f"{path}: line {line} is not a log row (no step number); lsgan keeps this "
+                                      "file as it wrote it: move the notes to another file") from None
+        out.append(dict(zip(fields, r)))
+    return fields, out
 
 
 RUN_STATE = ("last", "best", "log.csv", "train.log", "tb", "heldout.json")
-"""What a training run writes in its folder; ``force`` removes these and nothing else."""
+"""What a training run writes in its folder; ``force`` removes these (when lsgan's) and nothing else."""
 RUN_FILES = (*RUN_STATE, "demo-inputs.json", outputs.REGISTRY)
 """What a run folder may hold besides (``demo-inputs.json``: what ``lsgan demo`` started the run on)."""
 
@@ -196,36 +230,45 @@ RUN_FILES = (*RUN_STATE, "demo-inputs.json", outputs.REGISTRY)
 def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
     """Before training into ``out``: continue (``resume``) or start over (``force``) an lsgan run there.
 
-    A folder holding anything but a run's own files is refused for a new run, even with ``force``.
-    Only rank 0 looks (and clears); the other ranks of a torchrun start after it.
+    A run's own file that is not lsgan's (edited, or put there by the user) is refused either way. A folder
+    holding other files is refused for a new run, even with ``force``, and for ``resume`` unless it holds a
+    run's ``last/`` checkpoint. Only rank 0 looks (and clears); the other ranks of a torchrun start after it.
     """
     out = Path(out)
     if int(os.environ.get("RANK", "0")) != 0 or not out.exists():
         return
     if not out.is_dir():
         raise outputs.OutputError(f"{out}: exists and is not a folder; give a folder for the run")
-    names = sorted(p.name for p in out.iterdir())
+    outputs.sweep_temps(out)  # a killed run's temporaries (recorded, their process gone)
+    names = sorted(p.name for p in out.iterdir() if p.name != outputs.REGISTRY)
+    for n in names:
+        if n in RUN_STATE and not _run_entry_ours(out / n):
+            raise outputs.OutputError(f"{out / n}: is not what lsgan wrote there ({outputs.why_not_ours(out / n)}); "
+                                      "lsgan will not replace it, even with --force or --resume: move it away")
     others = [n for n in names if n not in RUN_FILES]
-    if resume:
+    listed = f"{', '.join(others[:5])}{' ...' if len(others) > 5 else ''}"
+    if resume and (out / "last").exists():
         return
     if others:
-        raise outputs.OutputError(f"{out}: holds files that are not an lsgan run's ({', '.join(others[:5])}"
-                                  f"{' ...' if len(others) > 5 else ''}); choose a new or empty folder")
-    if not any(n in RUN_STATE for n in names):
-        return
-    if not force:
+        what = "no lsgan run to resume (no last/ checkpoint) but files that are not an lsgan run's" if resume else \
+            "files that are not an lsgan run's"
+        raise outputs.OutputError(f"{out}: holds {what} ({listed}); choose a new or empty folder")
+    state = [n for n in names if n in RUN_STATE]
+    if state and not (force or resume):
         raise outputs.OutputError(f"{out}: already holds a run; pass --resume to continue it or --force to start "
                                   "over (only the run's own files are removed)")
-    foreign = [n for n in ("last", "best") if (out / n).exists() and not outputs.is_ours(out / n)]
-    if foreign:
-        raise outputs.OutputError(f"{out / foreign[0]}: is not a checkpoint lsgan wrote (or was changed since); "
-                                  "not removed, even with --force")
-    for name in RUN_STATE:
-        p = out / name
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-        elif p.exists() or p.is_symlink():
-            p.unlink()
+    for n in state:  # a new run: lsgan's own files of the previous one go (a resume without last/ starts anew)
+        if n == "tb" and outputs.made_folder(out / n):
+            outputs.clear_ours(out / n)  # the folder goes when empty; an event folder never recorded stays
+            with contextlib.suppress(outputs.OutputError):
+                outputs.remove(out / n)
+        else:
+            outputs.remove(out / n)
+
+
+def _run_entry_ours(p: Path) -> bool:
+    """A run file or folder lsgan wrote; ``tb/`` also when it is a folder lsgan made (TensorBoard writes in it)."""
+    return outputs.is_ours(p) or (p.name == "tb" and p.is_dir() and not p.is_symlink() and outputs.made_folder(p))
 
 
 def shard_paths(data: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from lsgan import outputs
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
@@ -167,7 +168,7 @@ def _splits(paths: list[str]) -> tuple[str | None, str | None]:
 
 def _finish(env: Env, p: Progress, metric: str, heldout: dict) -> dict:
     """Write ``heldout.json``; what both trainers return."""
-    (env.out / "heldout.json").write_text(json.dumps(heldout, indent=1))
+    outputs.replace_by(env.out / "heldout.json", json.dumps(heldout, indent=1))
     return {"step": p.step, "train_loss": p.train_loss, "val": p.val, f"best_val_{metric}": p.best_value,
             "heldout": heldout}
 

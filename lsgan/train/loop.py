@@ -23,7 +23,6 @@ metric that picks ``best/``. The loop owns the rest:
 """
 from __future__ import annotations
 
-import csv
 import math
 import os
 import random
@@ -42,6 +41,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
+from lsgan import outputs
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, collate
 from lsgan.faults import fault_point
 from lsgan.models.checkpoint import CONFIG, load_state, load_weights, save_checkpoint
@@ -84,6 +84,7 @@ class Env:
     resume: bool
     progress: bool
     notes: list[str] = field(default_factory=list)
+    journal: str | None = field(default=None, repr=False)  # train.log's text, read once, then kept here
 
     @property
     def is_main(self) -> bool:
@@ -95,9 +96,11 @@ class Env:
         if not self.is_main:
             return
         tqdm.write(f"{self.name}: {msg}", file=sys.stderr)
-        self.out.mkdir(parents=True, exist_ok=True)
-        with open(self.out / "train.log", "a") as f:
-            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}\n")
+        path = self.out / "train.log"
+        if self.journal is None:
+            self.journal = path.read_text(encoding="utf-8", errors="replace") if path.exists() else ""
+        self.journal += f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}\n"
+        outputs.replace_by(path, self.journal)  # rewritten whole, never appended in place (see RunLog)
 
     def ddp(self, module: torch.nn.Module) -> torch.nn.Module:
         """``module`` in DistributedDataParallel under torchrun, itself otherwise."""
@@ -301,7 +304,7 @@ def fit(env: Env, t: Trainer, s: Schedule, previous: Previous | None = None, int
     p = Progress(sign=-1.0 if t.higher_is_better else 1.0)
     log = RunLog(env.out, enabled=env.is_main)
     if previous is not None:
-        _restore(env, t, previous, p)
+        _restore(env, t, previous, p, log)
     elif intro:
         env.say(intro)
     if t.val_at_start and p.step == 0:
@@ -424,7 +427,7 @@ def _checkpoint(env: Env, t: Trainer, p: Progress, folder: str, with_state: bool
 # ---------------------------------------------------------------------------------------------------- resuming
 
 
-def _restore(env: Env, t: Trainer, prev: Previous, p: Progress) -> None:
+def _restore(env: Env, t: Trainer, prev: Previous, p: Progress, log: RunLog) -> None:
     """Weights, optimiser moments (with the hyperparameters given now), batch position, record and RNG of ``prev``."""
     saved = prev.meta["config"].get(t.same_config)
     if t.same_config is not None and saved != t.config[t.same_config]:
@@ -438,8 +441,7 @@ def _restore(env: Env, t: Trainer, prev: Previous, p: Progress) -> None:
     t.batches.load(prev.state)
     p.step, p.best, p.val = int(prev.state["step"]), float(prev.state["best"]), dict(prev.state["val"])
     p.threads = int(prev.state.get("threads", 0))
-    if env.is_main:
-        _truncate_log(env.out / "log.csv", p.step)
+    log.truncate(p.step)
     rngs = prev.state["rng"]
     if len(rngs) == env.dist.world_size:
         _set_rng_state(rngs[env.dist.rank], env.device)
@@ -489,16 +491,3 @@ def _all_rng_states(env: Env) -> list[dict]:
     states: list = [None] * env.dist.world_size
     dist.all_gather_object(states, mine)
     return states
-
-
-def _truncate_log(path: Path, step: int) -> None:
-    """Drop log rows past ``step`` (written after the checkpoint a run resumes from)."""
-    if not path.exists():
-        return
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
-    if not rows:
-        return
-    keep = [rows[0]] + [r for r in rows[1:] if r and float(r[0]) <= step]
-    with open(path, "w", newline="") as f:
-        csv.writer(f).writerows(keep)

@@ -20,7 +20,7 @@ import numpy as np
 
 from lsgan.data.clip import ClipError, RawClip
 from lsgan.data.skeleton import FPS, NUM_JOINTS
-from lsgan.pickles import PickleReadError, load_npz, load_pickle, with_chumpy_advice
+from lsgan.pickles import PickleReadError, load_npy, load_npz, load_pickle, with_chumpy_advice
 
 logger = logging.getLogger(__name__)
 
@@ -203,11 +203,19 @@ def smplh_joints(model: Any, poses: np.ndarray, trans: np.ndarray, betas: np.nda
     return out
 
 
-def _entry(npz: Any, key: str, path: str) -> np.ndarray:
+_MOTION_KEYS = ("mocap_framerate", "trans", "poses", "betas", "gender", "mocap_frame_rate")
+
+
+def _read_motion(path: str) -> dict[str, np.ndarray]:
+    """The entries of an AMASS motion file that the import reads, each header checked before it is allocated."""
     try:
-        return npz[key]
-    except ValueError as exc:
-        raise ClipError(f"{path}: entry {key!r} holds pickled objects; not unpickled") from exc
+        data = load_npz(path, _MOTION_KEYS)
+    except PickleReadError as exc:
+        raise ClipError(str(exc)) from None
+    for key, value in data.items():
+        if value.dtype.hasobject:
+            raise ClipError(f"{path}: entry {key!r} holds pickled objects, not numbers")
+    return data
 
 
 def amass_pose_data(path: str, body_models: str, device: str = "cpu", batch_frames: int = 4096) -> np.ndarray:
@@ -215,26 +223,18 @@ def amass_pose_data(path: str, body_models: str, device: str = "cpu", batch_fram
 
     ClipError for files without ``mocap_framerate`` or ``trans`` (e.g. the shape-only ``shape.npz``).
     """
-    try:
-        npz = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ClipError(f"cannot read {path}: {exc}") from exc
-    with npz:
-        keys = set(npz.files)
-        if "mocap_framerate" not in keys:
-            hint = " (it has 'mocap_frame_rate': SMPL-X G release; HumanML3D uses SMPL+H G)" \
-                if "mocap_frame_rate" in keys else " (a shape-only file?)"
-            raise ClipError(f"{path}: no 'mocap_framerate'{hint}; skipped as in HumanML3D")
-        if "trans" not in keys:
-            raise ClipError(f"{path}: no 'trans' (a shape-only file?); skipped as in HumanML3D")
-        for key in ("poses", "betas", "gender"):
-            if key not in keys:
-                raise ClipError(f"{path}: no {key!r}")
-        fps = float(_entry(npz, "mocap_framerate", path))
-        trans = _entry(npz, "trans", path)
-        poses = _entry(npz, "poses", path)
-        betas = _entry(npz, "betas", path)
-        gender = model_gender(_entry(npz, "gender", path))
+    npz = _read_motion(path)
+    if "mocap_framerate" not in npz:
+        hint = " (it has 'mocap_frame_rate': SMPL-X G release; HumanML3D uses SMPL+H G)" \
+            if "mocap_frame_rate" in npz else " (a shape-only file?)"
+        raise ClipError(f"{path}: no 'mocap_framerate'{hint}; skipped as in HumanML3D")
+    if "trans" not in npz:
+        raise ClipError(f"{path}: no 'trans' (a shape-only file?); skipped as in HumanML3D")
+    for key in ("poses", "betas", "gender"):
+        if key not in npz:
+            raise ClipError(f"{path}: no {key!r}")
+    fps, trans, poses, betas = float(npz["mocap_framerate"]), npz["trans"], npz["poses"], npz["betas"]
+    gender = model_gender(npz["gender"])
     stride = int(fps / FPS)
     if stride < 1:
         raise ClipError(f"{path}: mocap_framerate {fps} is below {FPS} fps")
@@ -249,9 +249,9 @@ def amass_pose_data(path: str, body_models: str, device: str = "cpu", batch_fram
 def joints_file(path: str) -> np.ndarray:
     """A ready joint file of HumanML3D's ``pose_data`` (T,>=22,3) ``.npy`` (e.g. its humanact12.zip): joints 0..21."""
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ClipError(f"cannot read {path}: {exc}") from exc
+        data = load_npy(path)
+    except PickleReadError as exc:
+        raise ClipError(str(exc)) from None
     if data.ndim != 3 or data.shape[1] < NUM_JOINTS or data.shape[2] != 3:
         raise ClipError(f"{path}: shape {data.shape}, expected (T,>=22,3) joints")
     return np.ascontiguousarray(data[:, :NUM_JOINTS], dtype=np.float32)

@@ -118,7 +118,10 @@ class BvhSource:
         bvh = read_bvh(item)
         joints = apply_joint_map(forward_kinematics(bvh), bvh.names, jmap, item)
         src_fps = self.fps or jmap.fps or bvh.fps
-        joints = resample(joints, float(src_fps), float(FPS)).astype(np.float32)
+        try:
+            joints = resample(joints, float(src_fps), float(FPS)).astype(np.float32)
+        except ValueError as exc:
+            raise ClipError(f"{item}: {exc}") from None
         captions: list[Caption] = []
         action = None
         if self.preset == "bandai":

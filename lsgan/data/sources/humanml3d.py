@@ -96,7 +96,7 @@ class HumanML3DSource:
         root = Path(self.root)
         if not ((root / "Mean.npy").exists() and (root / "Std.npy").exists()):
             return None
-        return np.load(root / "Mean.npy").astype(np.float32), np.load(root / "Std.npy").astype(np.float32)
+        return load_npy(str(root / "Mean.npy")).astype(np.float32), load_npy(str(root / "Std.npy")).astype(np.float32)
 
     def item_files(self, item: str) -> list[str]:
         """The clip's features and caption files (those that exist): what a resume compares."""
