@@ -156,7 +156,9 @@ def _made_folder(entry: dict, path: Path) -> bool:
 
 
 def _read_entries(folder: Path) -> dict:
-    """The registry's entries with plain names only; a missing or unreadable registry lists nothing."""
+    """The registry's entries with plain names only; a missing, unreadable or linked registry lists nothing."""
+    if (folder / REGISTRY).is_symlink():
+        return {}
     try:
         data = json.loads((folder / REGISTRY).read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -191,7 +193,8 @@ class _Registry:
         self._saved = json.dumps(self.entries, sort_keys=True)
 
     def save(self) -> None:
-        """Write the registry through ``.lsgan-outputs.json.tmp`` and a rename, when it changed."""
+        """Write the registry through ``.lsgan-outputs.json.tmp`` and a rename, when it changed; an empty one
+        is removed."""
         text = json.dumps({"entries": self.entries}, indent=0, sort_keys=True)
         if json.dumps(self.entries, sort_keys=True) == self._saved:
             return
@@ -200,6 +203,10 @@ class _Registry:
             if (p.exists() or p.is_symlink()) and not _is_registry_file(p, partial=p == tmp):
                 raise OutputError(f"{p}: is not lsgan's registry of outputs; move it away (lsgan records what it "
                                   "writes in that file)")
+        if not self.entries:  # nothing of lsgan's is left here: no registry either (checked above to be one)
+            reg.unlink(missing_ok=True)
+            self._saved = "{}"
+            return
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
             with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -286,11 +293,21 @@ def _delete(path: Path) -> None:
 
 
 def _only_registry(folder: Path) -> bool:
-    """Whether a folder holds nothing but its registry, and that registry lists nothing that still exists."""
+    """Whether a folder holds nothing but lsgan's registry, and that registry lists nothing that still exists."""
     names = [p.name for p in folder.iterdir()]
-    if any(n != REGISTRY for n in names):
+    if names and (names != [REGISTRY] or not _is_registry_file(folder / REGISTRY)):
         return False
     return not any((folder / n).exists() or (folder / n).is_symlink() for n in _read_entries(folder))
+
+
+def _listed_files(entry: dict | None, path: Path) -> dict[str, str] | None:
+    """What of the folder ``path`` lsgan can still vouch for: for a folder it wrote whole (recorded file by file
+    in its parent's registry), the files whose content is unchanged, by relative name; else None."""
+    if not entry or not entry.get("dir") or not isinstance(entry.get("files"), dict) or not path.is_dir() \
+            or path.is_symlink():
+        return None
+    now = _listing(path)
+    return {rel: v for rel, v in entry["files"].items() if v.startswith("file ") and now.get(rel) == v}
 
 
 def _removable(entry: dict | None, path: Path) -> bool:
@@ -508,9 +525,55 @@ def check_inputs(output: str | os.PathLike, inputs: Iterable[str | os.PathLike])
             raise OutputError(f"{output}: lies inside the input folder {i}; choose an output outside the inputs")
 
 
-def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> Path:
-    """Before writing the file ``path``: refuse what may not be replaced, sweep dead temporaries."""
+def _start_time(pid: int) -> str:
+    """When process ``pid`` started (Linux: its start tick), so that a reused pid is not taken for it."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def _writer_running(writer: object) -> bool:
+    """Whether the process noted by :func:`reserve` (``[pid, start]``) is another one, still running."""
+    if not (isinstance(writer, list) and len(writer) == 2 and isinstance(writer[0], int)):
+        return False
+    pid, start = writer
+    return pid != os.getpid() and _alive(pid) and _start_time(pid) == start
+
+
+def reserve(path: str | os.PathLike) -> None:
+    """Note in the registry that this process is about to write ``path``; refuse when another lsgan process that
+    is still running noted it first (two commands writing one output would each replace the other's work)."""
     path = Path(path)
+    if not path.parent.is_dir() or not plain_name(path.name):
+        return
+    with _registry(path.parent) as reg:
+        entry = reg.entries.get(path.name, {})
+        if _writer_running(entry.get("writer")):
+            raise OutputError(f"{path}: another lsgan process (pid {entry['writer'][0]}) is writing it; wait for it "
+                              "to end or choose another output")
+        reg.entries[path.name] = {**entry, "writer": [os.getpid(), _start_time(os.getpid())]}
+
+
+def check_apart(*paths: str | os.PathLike) -> None:
+    """Refuse outputs of one command that are the same path or lie one inside another."""
+    for k, a in enumerate(paths):
+        for b in paths[k + 1:]:
+            ra, rb = Path(a).resolve(), Path(b).resolve()
+            if _inside(ra, rb) or _inside(rb, ra):
+                raise OutputError(f"{a}: is also the output {b} (or lies inside it); give each output its own path")
+
+
+def _check_name(path: Path) -> None:
+    if path.name in (REGISTRY, _REGISTRY_TMP):
+        raise OutputError(f"{path}: is the name of lsgan's registry of outputs; choose another name")
+
+
+def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Before writing the file ``path``: refuse what may not be replaced, sweep dead temporaries, and note
+    that this process writes it (:func:`reserve`)."""
+    path = Path(path)
+    _check_name(path)
     check_inputs(path, inputs)
     if path.is_dir():
         raise OutputError(f"{path}: cannot write: is a folder (give a file name)")
@@ -523,6 +586,7 @@ def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable
         if not is_ours(path):
             raise OutputError(f"{path}: exists and is not a file lsgan wrote (or it was changed since); "
                               "not replaced, even with --force")
+    reserve(path)
     return path
 
 
@@ -532,10 +596,13 @@ def foreign(folder: Path) -> list[Path]:
     entries = _read_entries(folder)
     for p in sorted(folder.iterdir()):
         entry = entries.get(p.name)
-        if p.name == REGISTRY or _matches(entry, p):
+        listed = _listed_files(entry, p)
+        if (p.name == REGISTRY and _is_registry_file(p)) or _matches(entry, p):
             continue
-        if p.is_dir() and not p.is_symlink():
+        if _made_folder(entry or {}, p):
             out += foreign(p)
+        elif listed is not None:
+            out += [q for q in sorted(p.rglob("*")) if not q.is_dir() and q.relative_to(p).as_posix() not in listed]
         else:
             out.append(p)
     return out
@@ -549,10 +616,12 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
     removed (``whole``: the folder will be replaced as a unit, so it must hold nothing else).
     """
     path = Path(path)
+    _check_name(path)
     check_inputs(path, inputs)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{path}: cannot write: exists and is not a folder")
     sweep_temps(path.parent) if path.parent.is_dir() else None
+    reserve(path)
     if not path.exists() or _only_registry(path):
         return path
     if whole and is_ours(path):
@@ -571,12 +640,20 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
 
 
 def clear_ours(folder: Path) -> list[Path]:
-    """Delete what in ``folder`` (recursively) is still exactly what lsgan wrote, and the folders lsgan made
-    that are then empty; returns what was removed. Everything else stays."""
+    """Delete what in ``folder`` is still exactly what lsgan wrote, and the folders lsgan made that are then
+    empty; returns what was removed. Everything else stays. lsgan looks into a sub-folder only when it made it
+    (then by that folder's registry) or wrote it whole (then only the files its record here lists): a folder
+    the user put there, whatever registry it holds, is theirs."""
     removed: list[Path] = []
+    entries = _read_entries(folder)
     for p in sorted(folder.iterdir()):
-        if p.is_dir() and not p.is_symlink() and not is_ours(p):
+        entry, listed = entries.get(p.name), _listed_files(entries.get(p.name), p)
+        if _made_folder(entry or {}, p):
             removed += clear_ours(p)
+        elif listed is not None and not _matches(entry, p):  # a folder lsgan wrote whole, since added to
+            for rel in sorted(listed):
+                (p / rel).unlink()
+                removed.append(p / rel)
     sweep_temps(folder)
     if not (folder / REGISTRY).is_file():
         return removed

@@ -132,7 +132,12 @@ def test_demo_interrupted_continued_and_reused(tmp_path):
                            text=True, timeout=300)
     assert other.returncode == 1 and "other settings" in other.stderr and "--fresh" in other.stderr
 
-    # 5. --fresh removes the demo's own files and keeps the user's, wherever they were put (issue 28, B6)
+    # 5. --fresh removes the demo's own files and keeps the user's, wherever they were put
+    _fresh_keeps_user_files(out)
+
+
+def _fresh_keeps_user_files(out: Path) -> None:
+    """Issue 28, B6: what ``demo --fresh`` clears of a finished demo holding the user's files here and there."""
     from lsgan.demo import _clear_demo
 
     mine = {out / "glb" / "my.glb": b"glb", out / "motions" / "notes.txt": b"n", out / "data" / "mocap.h5": b"h",

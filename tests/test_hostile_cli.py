@@ -14,8 +14,9 @@ from pathlib import Path
 
 import pytest
 from cli_runs import run_here, tiny_pipeline
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
+from trees import snapshot, work_and_outside
 
 from lsgan import outputs
 
@@ -23,11 +24,11 @@ pytestmark = pytest.mark.slow
 
 # names that lsgan's commands write, or may be asked to write, in the working folder
 PLACES = ["out.h5", "out.h5.report.json", "out.h5.parts", "run", "run/log.csv", "run/train.log", "run/last",
-          "run/tb", "run/notes.tex", ".out.h5.2023.old", "report.json"]
+          "run/tb", "run/notes.tex", ".out.h5.2023.old", "report.json", "gen", "gen/backup", "run/backup"]
 OUTS = ["out.h5", "run/x.h5", "run", "synth.h5", "notes.tex", "new/deep/out.h5"]
 REPORTS = [None, "out.h5", "synth.h5", "report.json", "run/log.csv", "run"]
 RUNS = ["run", "run2", "synth.h5", "out.h5.parts", ".", "vae"]
-GENERATED = ["gen", "gan/samples", "vae", "run", "out.h5", "."]
+GENERATED = ["gen", "gan/samples", "vae", "run", "out.h5", ".", "gen/backup"]
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +53,8 @@ def plant(work: Path, outside: Path, tree) -> None:
             p.symlink_to(outside / "secret.txt")
         elif kind == "hardlink":
             os.link(outside / "linked.txt", p)
+        elif kind == "copy":  # the user's backup of a run lsgan wrote, with the registry that came along
+            shutil.copytree(work / "vae", p)
         else:  # a registry copied from elsewhere or forged, beside the user's file
             p.write_bytes(data)
             entries = {p.name: {"size": 3, "sha256": "0" * 64}, "../outside/secret.txt": {"size": 6},
@@ -59,17 +62,9 @@ def plant(work: Path, outside: Path, tree) -> None:
             (p.parent / outputs.REGISTRY).write_text(json.dumps({"entries": entries}))
 
 
-def snapshot(root: Path) -> dict[str, tuple]:
-    snap = {}
-    for p in sorted(root.rglob("*")):
-        if p.name != outputs.REGISTRY:
-            snap[str(p.relative_to(root))] = (("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir()
-                                              else ("file", p.read_bytes()))
-    return snap
-
-
-trees = st.lists(st.tuples(st.sampled_from(PLACES), st.sampled_from(["file", "dir", "link", "hardlink", "forged"]),
-                           st.binary(min_size=1, max_size=16)), max_size=5)
+KINDS = ["file", "dir", "link", "hardlink", "forged", "copy"]
+trees = st.lists(st.tuples(st.sampled_from(PLACES), st.sampled_from(KINDS), st.binary(min_size=1, max_size=16)),
+                 max_size=5)
 flags = st.sampled_from([[], ["--force"], ["--resume"]])
 preprocess = st.tuples(st.just("preprocess"), st.sampled_from(OUTS), st.sampled_from(REPORTS), flags)
 train = st.tuples(st.just("train-vae"), st.sampled_from(RUNS), st.none(), flags)
@@ -91,15 +86,14 @@ def argv(command) -> list:
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                    HealthCheck.too_slow])
 @given(tree=trees, cmds=commands)
+@example(tree=[("gen/backup", "copy", b"x")],  # the outside check's B1: a backup copied into the output
+         cmds=[("generate", "gen", None, ["--force"]), ("generate", "gen", None, ["--force"])])
+@example(tree=[("run/backup", "copy", b"x"), ("run/notes.tex", "forged", b"x")],
+         cmds=[("train-vae", "run", None, ["--resume"]), ("train-vae", "run", None, ["--force"])])
 def test_commands_never_touch_what_lsgan_did_not_write(seed_dir, tmp_path_factory, monkeypatch, tree, cmds):
     monkeypatch.setenv("LSGAN_THREADS", "1")
     monkeypatch.delenv("LSGAN_DEBUG", raising=False)
-    base = tmp_path_factory.mktemp("hostile")
-    work, outside = base / "work", base / "outside"
-    work.mkdir()
-    outside.mkdir()
-    (outside / "secret.txt").write_bytes(b"secret")
-    (outside / "linked.txt").write_bytes(b"hard-linked")
+    work, outside = work_and_outside(tmp_path_factory.mktemp("hostile"))
     for name in ("synth.h5", "tiny.yaml", outputs.REGISTRY, "vae", "gan"):  # lsgan's (copies, with their record)
         (shutil.copytree if (seed_dir / name).is_dir() else shutil.copy2)(seed_dir / name, work / name)
     plant(work, outside, tree)

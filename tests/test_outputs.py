@@ -9,6 +9,9 @@ from pathlib import Path
 
 import click
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from trees import snapshot, work_and_outside
 
 from lsgan import outputs
 from lsgan.io import atomic_file, atomic_folder
@@ -175,10 +178,67 @@ def test_a_folder_holding_user_files_is_never_replaced_whole(tmp_path):
     assert (target / "notes.txt").read_text() == "mine" and (target / "w.bin").read_bytes() == b"1"
 
 
-# ------------------------------------------------------------------------------- hostile trees (Hypothesis)
+def test_a_copy_of_lsgans_folder_inside_the_output_is_the_users(tmp_path):
+    """A backup the user copied (with its registry) into an output folder is theirs: --force clears around it."""
+    import shutil
 
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+    out = tmp_path / "gen"
+    _write(out / "a.npy", b"motion")
+    shutil.copytree(out, tmp_path / "copy")
+    (tmp_path / "copy").rename(out / "mybackup")
+    outputs.claim_folder(out, force=True)
+    assert not (out / "a.npy").exists() and (out / "mybackup" / "a.npy").read_bytes() == b"motion"
+
+
+def test_a_linked_registry_vouches_for_nothing(tmp_path):
+    src, bak = tmp_path / "gen", tmp_path / "bak"
+    _write(src / "a.npy", b"motion")
+    bak.mkdir()
+    (bak / "a.npy").write_bytes(b"motion")
+    (bak / outputs.REGISTRY).symlink_to(src / outputs.REGISTRY)
+    with pytest.raises(outputs.OutputError):
+        outputs.claim_folder(bak, force=True)
+        _write(bak / "b.npy", b"x")
+    assert (bak / "a.npy").read_bytes() == b"motion"
+
+
+def test_a_users_file_under_the_registrys_name_is_kept(tmp_path):
+    """B3: a folder holding only a file named like the registry is not empty and not lsgan's."""
+    out = tmp_path / "hm"
+    out.mkdir()
+    (out / outputs.REGISTRY).write_text("my precious notes")
+    with pytest.raises(outputs.OutputError):
+        outputs.claim_folder(out, force=True, whole=True)
+        with atomic_folder(out) as t:
+            (t / "x").write_text("y")
+    assert (out / outputs.REGISTRY).read_text() == "my precious notes"
+    with pytest.raises(outputs.OutputError, match="registry"):
+        outputs.claim_file(tmp_path / outputs.REGISTRY)
+
+
+def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path):
+    """B5: two commands writing one output would each replace the other's: the second is refused while the
+    first runs, and free once it is gone."""
+    import subprocess
+    import sys
+    import time
+
+    target = tmp_path / "s.h5"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from lsgan import outputs; "
+                               f"outputs.claim_file({str(target)!r}); print('held', flush=True); time.sleep(30)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(outputs.OutputError, match="another lsgan process"):
+            outputs.claim_file(target)
+    finally:
+        holder.kill()
+        holder.wait()
+    time.sleep(0.05)
+    assert outputs.claim_file(target) == target
+
+
+# ------------------------------------------------------------------------------- hostile trees (Hypothesis)
 
 NAMES = ["a.h5", "a.h5.report.json", ".a.h5.123.abcdefgh.tmp", ".a.h5.2023.old", ".ckpt.77.0a1b2c3d.old", "ckpt",
          "notes.txt", "sub", "log.csv"]
@@ -192,7 +252,7 @@ def _entry_for(content: bytes) -> dict:
 
 
 user_trees = st.lists(st.tuples(
-    st.sampled_from(NAMES), st.sampled_from(["file", "dir", "link", "hardlink"]), st.sampled_from(SUBNAMES),
+    st.sampled_from(NAMES), st.sampled_from(["file", "dir", "link", "hardlink", "backup"]), st.sampled_from(SUBNAMES),
     st.binary(min_size=1, max_size=32)), max_size=5, unique_by=lambda t: t[0])
 registries = st.sampled_from(["none", "forged", "traversal", "stale", "garbage"])
 operations = st.lists(st.tuples(
@@ -212,6 +272,10 @@ def _plant(out: Path, outside: Path, tree, registry: str) -> None:
             (p / sub).write_bytes(data)
         elif kind == "link":
             p.symlink_to(outside / "secret.txt")
+        elif kind == "backup":  # a copy of a folder lsgan wrote, its registry vouching for the copy
+            p.mkdir()
+            (p / sub).write_bytes(data)
+            (p / outputs.REGISTRY).write_text(json.dumps({"entries": {sub: _entry_for(data)}}))
         else:
             os.link(outside / "linked.txt", p)
     names = [t[0] for t in tree] + ["new.bin"]
@@ -226,18 +290,6 @@ def _plant(out: Path, outside: Path, tree, registry: str) -> None:
     if forged is not None:
         text = forged if isinstance(forged, str) else json.dumps({"entries": forged})
         (out / outputs.REGISTRY).write_text(text)
-
-
-def _snapshot(root: Path) -> dict[str, tuple]:
-    """Everything under ``root`` but lsgan's registries: kind and bytes (a link by its target)."""
-    snap = {}
-    for p in sorted(root.rglob("*")):
-        if p.name == outputs.REGISTRY:
-            continue
-        rel = str(p.relative_to(root))
-        snap[rel] = (("link", os.readlink(p)) if p.is_symlink() else ("dir",) if p.is_dir()
-                     else ("file", p.read_bytes()))
-    return snap
 
 
 def _apply(out: Path, op, wrote: set[str]) -> None:
@@ -270,22 +322,17 @@ def _apply(out: Path, op, wrote: set[str]) -> None:
 def test_no_operation_changes_a_byte_lsgan_did_not_write(tmp_path_factory, tree, registry, ops):
     """Random user trees and registries around random writes, claims, clears, sweeps and removals: every
     path lsgan did not write keeps its kind and bytes, and nothing outside the output changes."""
-    base = tmp_path_factory.mktemp("tree")
-    out, outside = base / "out", base / "outside"
-    out.mkdir()
-    outside.mkdir()
-    (outside / "secret.txt").write_bytes(b"secret")
-    (outside / "linked.txt").write_bytes(b"hard-linked")
+    out, outside = work_and_outside(tmp_path_factory.mktemp("tree"), "out")
     _plant(out, outside, tree, registry)
-    before, before_outside = _snapshot(out), _snapshot(outside)
+    before, before_outside = snapshot(out), snapshot(outside)
     wrote: set[str] = set()
     for op in ops:
         _apply(out, op, wrote)
-    after = _snapshot(out)
+    after = snapshot(out)
     for rel, what in before.items():
         if rel not in wrote and not any(rel.startswith(w + "/") for w in wrote):
             assert after.get(rel) == what, f"{rel} changed or vanished after {ops}"
-    assert _snapshot(outside) == before_outside
+    assert snapshot(outside) == before_outside
 
 
 # ---------------------------------------------------------------------------------------- runs and resumes

@@ -295,12 +295,11 @@ def _claim(source, items: list[str], output: Path, format: str, report: Path, fo
     """Refuse outputs that exist (without ``force``), are not lsgan's, or hold the inputs."""
     roots = [getattr(source, a) for a in ("root", "path") if isinstance(getattr(source, a, None), str)]
     inputs = [*roots, *items[:1], *source.inputs()]
+    outputs.check_apart(output, report, output.with_name(output.name + ".parts"))
     if format == "hdf5":
         outputs.claim_file(output, force=force, inputs=[*inputs, *(i for i in items if os.path.isfile(i))])
     else:
         outputs.claim_folder(output, force=force, inputs=inputs, whole=True)
-    outputs.check_inputs(report, [*inputs, output])
-    outputs.check_inputs(output, [report])
     outputs.claim_file(report, force=force, inputs=inputs)
 
 

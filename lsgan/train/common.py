@@ -235,7 +235,10 @@ def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
     run's ``last/`` checkpoint. Only rank 0 looks (and clears); the other ranks of a torchrun start after it.
     """
     out = Path(out)
-    if int(os.environ.get("RANK", "0")) != 0 or not out.exists():
+    if int(os.environ.get("RANK", "0")) != 0:
+        return
+    outputs.reserve(out)  # a second lsgan process training into the same folder is refused
+    if not out.exists():
         return
     if not out.is_dir():
         raise outputs.OutputError(f"{out}: exists and is not a folder; give a folder for the run")
