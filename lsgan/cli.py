@@ -74,15 +74,12 @@ def declared_paths(command: click.Command, params: dict) -> tuple[list[str], lis
 
 def check_declared_paths(command: click.Command, params: dict) -> None:
     """Refuse an output that is, holds or lies inside an input, or that overlaps another output."""
-    from lsgan.outputs import OutputError, check_inputs
+    from lsgan.outputs import check_apart, check_inputs
 
     ins, outs = declared_paths(command, params)
-    for k, out in enumerate(outs):
+    for out in outs:
         check_inputs(out, ins)
-        for other in outs[k + 1:]:
-            a, b = Path(out).resolve(), Path(other).resolve()
-            if a == b or a in b.parents or b in a.parents:
-                raise OutputError(f"{out}: is also the output {other}; give each output its own path")
+    check_apart(*outs)
 
 
 class LsganCommand(click.Command):
