@@ -541,17 +541,25 @@ def _writer_running(writer: object) -> bool:
     return pid != os.getpid() and _alive(pid) and _start_time(pid) == start
 
 
+def check_writer(path: str | os.PathLike) -> None:
+    """Refuse ``path`` when another lsgan process that is still running noted that it writes it (two commands
+    writing one output would each replace the other's work)."""
+    path = Path(path)
+    writer = _read_entries(path.parent).get(path.name, {}).get("writer") if plain_name(path.name) else None
+    if _writer_running(writer):
+        raise OutputError(f"{path}: another lsgan process (pid {writer[0]}) is writing it; wait for it to end or "
+                          "choose another output")
+
+
 def reserve(path: str | os.PathLike) -> None:
-    """Note in the registry that this process is about to write ``path``; refuse when another lsgan process that
-    is still running noted it first (two commands writing one output would each replace the other's work)."""
+    """Note in the registry that this process writes ``path`` (after :func:`check_writer`, under the lock)."""
     path = Path(path)
     if not path.parent.is_dir() or not plain_name(path.name):
         return
     with _registry(path.parent) as reg:
         entry = reg.entries.get(path.name, {})
         if _writer_running(entry.get("writer")):
-            raise OutputError(f"{path}: another lsgan process (pid {entry['writer'][0]}) is writing it; wait for it "
-                              "to end or choose another output")
+            check_writer(path)
         reg.entries[path.name] = {**entry, "writer": [os.getpid(), _start_time(os.getpid())]}
 
 
@@ -580,6 +588,7 @@ def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable
     if path.parent.exists() and not path.parent.is_dir():
         raise OutputError(f"{path}: cannot write: {path.parent} is not a folder")
     sweep_temps(path.parent)
+    check_writer(path)
     if path.exists() or path.is_symlink():
         if not force:
             raise OutputError(f"{path}: exists; pass --force to replace it (lsgan replaces only files it wrote)")
@@ -621,12 +630,14 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
     if path.exists() and not path.is_dir():
         raise OutputError(f"{path}: cannot write: exists and is not a folder")
     sweep_temps(path.parent) if path.parent.is_dir() else None
-    reserve(path)
+    check_writer(path)
     if not path.exists() or _only_registry(path):
+        reserve(path)
         return path
     if whole and is_ours(path):
         if not force:
             raise OutputError(f"{path}: exists; pass --force to replace it (lsgan replaces only what it wrote)")
+        reserve(path)
         return path
     if not force:
         raise OutputError(f"{path}: exists and is not empty; pass --force to replace what lsgan wrote there "
@@ -635,6 +646,7 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
     if others and whole:
         names = ", ".join(str(p.relative_to(path)) for p in others[:5]) + (" ..." if len(others) > 5 else "")
         raise OutputError(f"{path}: holds files lsgan did not write ({names}); not replaced, even with --force")
+    reserve(path)
     clear_ours(path)
     return path
 

@@ -237,8 +237,9 @@ def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
     out = Path(out)
     if int(os.environ.get("RANK", "0")) != 0:
         return
-    outputs.reserve(out)  # a second lsgan process training into the same folder is refused
+    outputs.check_writer(out)  # a second lsgan process training into the same folder is refused
     if not out.exists():
+        outputs.reserve(out)
         return
     if not out.is_dir():
         raise outputs.OutputError(f"{out}: exists and is not a folder; give a folder for the run")
@@ -251,6 +252,7 @@ def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
     others = [n for n in names if n not in RUN_FILES]
     listed = f"{', '.join(others[:5])}{' ...' if len(others) > 5 else ''}"
     if resume and (out / "last").exists():
+        outputs.reserve(out)
         return
     if others:
         what = "no lsgan run to resume (no last/ checkpoint) but files that are not an lsgan run's" if resume else \
@@ -260,6 +262,7 @@ def claim_run(out: str | os.PathLike, *, resume: bool, force: bool) -> None:
     if state and not (force or resume):
         raise outputs.OutputError(f"{out}: already holds a run; pass --resume to continue it or --force to start "
                                   "over (only the run's own files are removed)")
+    outputs.reserve(out)
     for n in state:  # a new run: lsgan's own files of the previous one go (a resume without last/ starts anew)
         if n == "tb" and outputs.made_folder(out / n):
             outputs.clear_ours(out / n)  # the folder goes when empty; an event folder never recorded stays
