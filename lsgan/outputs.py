@@ -551,16 +551,51 @@ def check_writer(path: str | os.PathLike) -> None:
                           "choose another output")
 
 
+_claimed: list[Path] | None = None
+"""The paths the running command reserved (:func:`claims`); None outside a command (library use)."""
+
+
+@contextmanager
+def claims() -> Iterator[None]:
+    """The span of one command: what it claims is noted in the registries for other lsgan processes to see
+    (:func:`reserve`), and the notes are taken back when it ends, whatever the outcome, so that a refused or
+    failed command leaves every registry as it found it. Library calls outside it note nothing."""
+    global _claimed
+    _claimed, outer = [], _claimed
+    try:
+        yield
+    finally:
+        mine, _claimed = _claimed, outer
+        for path in mine:
+            _release(path)
+
+
 def reserve(path: str | os.PathLike) -> None:
-    """Note in the registry that this process writes ``path`` (after :func:`check_writer`, under the lock)."""
+    """Note in the registry that this command writes ``path`` (after :func:`check_writer`), during
+    :func:`claims` only."""
     path = Path(path)
-    if not path.parent.is_dir() or not plain_name(path.name):
+    if _claimed is None or not path.parent.is_dir() or not plain_name(path.name):
         return
     with _registry(path.parent) as reg:
         entry = reg.entries.get(path.name, {})
         if _writer_running(entry.get("writer")):
             check_writer(path)
         reg.entries[path.name] = {**entry, "writer": [os.getpid(), _start_time(os.getpid())]}
+    _claimed.append(path)
+
+
+def _release(path: Path) -> None:
+    """Take back this process's note on ``path`` (a registry that is then empty goes too)."""
+    if not path.parent.is_dir():
+        return
+    try:
+        with _registry(path.parent) as reg:
+            entry = reg.entries.get(path.name)
+            if entry and entry.get("writer") == [os.getpid(), _start_time(os.getpid())]:
+                rest = {k: v for k, v in entry.items() if k != "writer"}
+                reg.entries.pop(path.name) if not rest else reg.entries.update({path.name: rest})
+    except (OSError, OutputError):
+        pass  # a note left behind names a process that is gone: it blocks nothing
 
 
 def check_apart(*paths: str | os.PathLike) -> None:

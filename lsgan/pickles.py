@@ -12,7 +12,8 @@ object pointers, ``dtype.__setstate__`` accepts object fields overlapping other 
 item, and scipy's sparse kernels trust their index arrays (each a crash, or worse). So a pickle only builds
 inert records; arrays, dtypes and sparse matrices are then made with public constructors from checked
 parts: plain dtypes with items of non-zero size, data whose length matches the shape, object arrays from
-lists, sparse indices inside the shape and a dense size within :data:`MEMORY_BUDGET`.
+lists, sparse indices inside the shape and a dense size within :data:`MEMORY_BUDGET`, and all the arrays of one
+pickle within it too (data the memo shares is copied for each array made from it).
 
 Used for SMPL-family ``.pkl`` models, the object entries of ``.npz`` models, the GloVe pickles of the
 T2M evaluator and HumanAct12's ``humanact12poses.pkl``; :func:`load_torch` scans the pickles of a torch
@@ -30,6 +31,7 @@ import pickletools
 import re
 import zipfile
 import zlib
+from contextvars import ContextVar
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -53,7 +55,8 @@ so this bounds the unpickled objects to about 2 GB; real inputs hold far fewer (
 MEMORY_BUDGET = 1 << 30
 """Most bytes (1 GiB) a reader allocates on a file's word: a pickle file or pickled entry read into memory, the
 dense size of a sparse matrix (body models turn them dense), an ``.npz`` entry compressed with anything but
-deflate. The largest real entries are about 100 MB (SMPL-X's shapedirs, 10475x3x400 float64)."""
+deflate, and all the arrays one pickle builds together (see :class:`_Meter`; without shared data they are no
+larger than the file). The largest real entries are about 100 MB (SMPL-X's shapedirs, 10475x3x400 float64)."""
 
 DEFLATE_MAX_RATIO = 1032
 """Deflate's largest possible compression ratio: a deflated zip member cannot inflate to more than this many
@@ -205,6 +208,31 @@ def _checked_dtype(args: tuple, state) -> np.dtype:
     return base.newbyteorder(byteorder) if byteorder in "<>" else base
 
 
+class _Meter:
+    """The bytes the arrays of one pickle take, counted before each is made: data that the pickle shares through
+    its memo is copied for every array made from it, so a 21 MB file can ask for 10 GB (500 arrays of one 20 MB
+    string). Past MEMORY_BUDGET the pickle is refused."""
+
+    def __init__(self) -> None:
+        self.spent = 0
+
+    def spend(self, nbytes: int) -> None:
+        self.spent += nbytes
+        if self.spent > MEMORY_BUDGET:
+            raise _Bound(f"the arrays it builds would take more than MEMORY_BUDGET ({MEMORY_BUDGET:,} bytes); data "
+                         "it shares between arrays is copied for each")
+
+
+_METER: ContextVar[_Meter | None] = ContextVar("lsgan_pickle_meter", default=None)
+
+
+def _allocating(nbytes: int) -> None:
+    """Count ``nbytes`` about to be allocated against the current load's :class:`_Meter` (if one is running)."""
+    meter = _METER.get()
+    if meter is not None:
+        meter.spend(nbytes)
+
+
 def _from_bytes(raw, dtype: np.dtype, shape: tuple[int, ...], order: str) -> np.ndarray:
     """A writable array of ``dtype`` and ``shape`` from exactly the bytes it needs."""
     if dtype.hasobject:
@@ -219,6 +247,7 @@ def _from_bytes(raw, dtype: np.dtype, shape: tuple[int, ...], order: str) -> np.
         raise _Invalid(f"{n} items of {dtype} need {n * dtype.itemsize} bytes, the pickle has {size}")
     if n == 0 or dtype.itemsize == 0:
         return np.zeros(shape, dtype)
+    _allocating(size)
     return np.frombuffer(raw, dtype=dtype, count=n).reshape(shape, order=order).copy(order="K")
 
 
@@ -255,6 +284,7 @@ def _latin1_encode(text, encoding):
     """``_codecs.encode(str, 'latin1')``: how Python 3 pickles bytes with protocol 2."""
     if type(text) is not str or encoding not in ("latin1", "latin-1"):
         raise _Invalid("_codecs.encode is only read for latin-1 text")
+    _allocating(len(text))
     return text.encode("latin1")
 
 
@@ -342,6 +372,7 @@ class _Builder:
         n = math.prod(shape)
         if not isinstance(data, list) or len(data) != n:
             raise _Invalid(f"an object array of {n} items without a list of {n} items")
+        _allocating(2 * n * dtype.itemsize)  # the list of built items, then the array
         items = [self.finish(v) for v in data]
         return np.fromiter(items, dtype=object, count=n).reshape(shape)
 
@@ -371,8 +402,11 @@ class _Builder:
             if not len(row) == len(col) == len(data):
                 raise _Invalid("a coo matrix whose index and data arrays differ in length")
             parts: tuple = (data, (row, col))
+            arrays = (data, row, col)
         else:
-            parts = (data, self._numeric(state.get("indices"), "indices"), self._numeric(state.get("indptr"), "indptr"))
+            parts = arrays = (data, self._numeric(state.get("indices"), "indices"),
+                              self._numeric(state.get("indptr"), "indptr"))
+        _allocating(sum(a.nbytes for a in arrays))  # scipy may copy them (a shared array, once per matrix)
         import scipy.sparse  # only here: most readers of this module never meet a sparse matrix
 
         cls = {"csc": scipy.sparse.csc_matrix, "csr": scipy.sparse.csr_matrix, "coo": scipy.sparse.coo_matrix}
@@ -404,7 +438,11 @@ class SafeUnpickler(pickle.Unpickler):
         return found
 
     def load(self) -> Any:
-        return _Builder().finish(super().load())
+        token = _METER.set(_Meter())
+        try:
+            return _Builder().finish(super().load())
+        finally:
+            _METER.reset(token)
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -188,6 +188,26 @@ def test_bom_and_cr_line_ends_read_the_same(tmp_path, bom, eol, gz):
     np.testing.assert_array_equal(other.offsets, plain.offsets)
 
 
+def test_gzip_members_and_padding_read_the_same_and_bombs_are_refused_while_inflating(tmp_path):
+    """A .bvh.gz is inflated a piece at a time: several members and zero padding read as one text, and inflating
+    stops with a refusal once the text outgrows what its MOTION header declares (a 3 MB file of spaces is 3 GB),
+    or 16 MiB go by with no MOTION header."""
+    text = bvh_text(SMALL_HIERARCHY, np.random.default_rng(3).uniform(-90, 90, size=(6, SMALL_CHANNELS))).encode()
+    plain = read_bvh(write(tmp_path / "plain.bvh", text.decode()))
+    members = tmp_path / "members.bvh.gz"
+    members.write_bytes(gzip.compress(text[:100]) + gzip.compress(text[100:]) + b"\0" * 8)
+    np.testing.assert_array_equal(read_bvh(members).motion, plain.motion)
+    padded = tmp_path / "padded.bvh.gz"
+    padded.write_bytes(gzip.compress(text + b" " * (4 << 20), compresslevel=1))
+    headless = tmp_path / "headless.bvh.gz"
+    headless.write_bytes(gzip.compress(text.split(b"MOTION")[0] + b" " * (17 << 20), compresslevel=1))
+    for path, why in ((padded, "more than the frames and channels of its MOTION header can take (a gzip bomb?)"),
+                      (headless, "with no MOTION header in them (a gzip bomb?)")):
+        with pytest.raises(ClipError) as err:
+            read_bvh(path)
+        assert str(err.value).startswith(f"{path}: refused: inflates to more than ") and why in str(err.value)
+
+
 @pytest.mark.parametrize("frames", [100_000_000, 10**12, 5000])
 def test_frame_counts_the_file_cannot_hold_are_refused_before_allocating(tmp_path, frames):
     """A 20 KB file saying 'Frames: 100000000' is refused from its size, before any frame is parsed."""

@@ -224,8 +224,9 @@ def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path):
     import time
 
     target = tmp_path / "s.h5"
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from lsgan import outputs; "
-                               f"outputs.claim_file({str(target)!r}); print('held', flush=True); time.sleep(30)"],
+    holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
+                               f"with outputs.claims():\n    outputs.claim_file({str(target)!r})\n"
+                               "    print('held', flush=True)\n    time.sleep(30)"],
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"

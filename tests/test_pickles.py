@@ -415,6 +415,40 @@ def test_old_module_names_and_python2_pickles(tmp_path):
     assert _same(SafeUnpickler(io.BytesIO(py2), "py2").load(), a)
 
 
+def _shared_buffer_arrays(count: int, data: bytes) -> bytes:
+    """A pickle of ``count`` float32 arrays built from one bytes object (memoised: stored once)."""
+    from numpy._core.multiarray import _reconstruct
+
+    state = (1, (len(data) // 4,), np.dtype("f4"), False, data)
+    return pickle.dumps([_Built(Call(_reconstruct, np.ndarray, (0,), b"b"), state) for _ in range(count)], protocol=2)
+
+
+class _Built:
+    """Pickles as ``made`` (a Call) followed by BUILD with ``state``."""
+
+    def __init__(self, made: Call, state) -> None:
+        self.made, self.state = made, state
+
+    def __reduce__(self):
+        return self.made.fn, self.made.args, self.state
+
+
+def test_arrays_sharing_one_buffer_are_counted_against_the_budget(tmp_path, monkeypatch):
+    """Each array made from memoised data is its own copy (500 arrays of one 20 MB string are 10 GB from a 21 MB
+    file): the copies count against MEMORY_BUDGET together, and a pickle within it reads as independent arrays."""
+    path = tmp_path / "shared.pkl"
+    path.write_bytes(_shared_buffer_arrays(3, bytes(4000)))
+    assert path.stat().st_size < 5000
+    arrays = load_pickle(path)
+    arrays[0][0] = 1.0
+    assert [float(a[0]) for a in arrays] == [1.0, 0.0, 0.0] and all(a.shape == (1000,) for a in arrays)
+    monkeypatch.setattr(lsgan.pickles, "MEMORY_BUDGET", 10_000)
+    with pytest.raises(PickleReadError) as err:
+        load_pickle(path)
+    assert str(err.value) == (f"{path}: refused: the arrays it builds would take more than MEMORY_BUDGET (10,000 "
+                              "bytes); data it shares between arrays is copied for each")
+
+
 def _py2_str(b: bytes) -> bytes:
     return b"U" + bytes([len(b)]) + b if len(b) < 256 else b"T" + struct.pack("<i", len(b)) + b
 

@@ -2,7 +2,11 @@
 
 Real HDF5 files (a synthetic shard, damaged in place), real tiny training runs through the CLI. Hostile inputs
 (issue 28: pickles past the bounds, HDF5 data from outside the file or larger than it, bad clip tables, BVH
-headers that claim too much) are one table, HOSTILE, run through the CLI.
+headers that claim too much; then small files that decode to gigabytes: HDF5 chunks never written, strings that
+share one stored copy, pickled arrays that share one memoised buffer, a gzip BVH padded with 3 GB of spaces) are
+one table, HOSTILE, run through the CLI in a child Python whose address space is capped at what it maps after its
+imports plus 2 GiB (as tests/test_fuzz_readers.py caps its examples): a bomb that slips through fails the row with
+a MemoryError instead of taking the machine's memory.
 """
 from __future__ import annotations
 
@@ -12,8 +16,10 @@ import os
 import pickle
 import re
 import shutil
+import struct
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import h5py
@@ -50,6 +56,16 @@ def lsgan(*args, cwd) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.run([sys.executable, "-m", "lsgan.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, env=env)
+
+
+def capped_lsgan(*args, cwd) -> subprocess.CompletedProcess:
+    """lsgan in a child Python whose address space is capped after its imports (see the module's docstring)."""
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+            "import h5py, torch, lsgan.cli, lsgan.data.dataset, lsgan.data.preprocess\n"
+            "from test_fuzz_readers import limit_memory\nlimit_memory()\n"
+            f"lsgan.cli.main(args={[str(a) for a in args]!r}, prog_name='lsgan')")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd, env=env)
 
 
 def snapshot(folder: Path) -> dict[str, str]:
@@ -498,6 +514,100 @@ def _bvh(w: Path, text_of) -> list:
     return ["preprocess", "--source", "bvh", "--joint-map", "map.json", "bvh", "-o", "out.h5"]
 
 
+def _unwritten_chunks(w: Path, run: Path) -> list:
+    """/features resized to 32,000,000 rows (31 GiB declared), only the real rows' chunks written: a 3 MB file."""
+    shutil.copy(run / "synth.h5", w / "bad.h5")
+    with h5py.File(w / "bad.h5", "r+") as f:
+        x = f["features"][()]
+        _replace(f, "features", shape=(32_000_000, 263), maxshape=(None, 263), dtype=np.float32, chunks=(1024, 263),
+                 compression="gzip", shuffle=True)
+        f["features"][: len(x)] = x
+    return ["train-vae", "--data", "bad.h5", "--recipe", run / "tiny0.yaml", "--out", "vae"]
+
+
+def _rows_beyond_clips(f: h5py.File, w: Path) -> None:  # every chunk written (zeros), 100,000 rows no clip uses
+    rows = f["features"].shape[0]
+    f["features"].resize(100_000, axis=0)
+    f["features"][rows:] = 0
+
+
+def _shared_strings(w: Path, run: Path, chunked: bool, n: int = 20_000, size: int = 1 << 20) -> list:
+    """captions/text of ``n`` entries whose stored references all point at the first one's string of ``size``
+    bytes (20 GB decoded from a 5 MB file): patched in the file (contiguous) or as raw chunks (chunked)."""
+    shutil.copy(run / "synth.h5", w / "bad.h5")
+    with h5py.File(w / "bad.h5", "r+") as f:
+        for key in ("clip", "text", "tokens", "start", "end"):
+            del f[f"captions/{key}"]
+        f["captions/clip"], f["captions/start"], f["captions/end"] = np.zeros(n, np.int32), np.zeros(n), np.zeros(n)
+        f.create_dataset("captions/tokens", data=np.array([""] * n, dtype=object), dtype=h5py.string_dtype())
+        text = f.create_dataset("captions/text", data=np.array(["x" * size] + [""] * (n - 1), dtype=object),
+                                dtype=h5py.string_dtype(), chunks=(1000,) if chunked else None)
+        if chunked:
+            first = text.id.read_direct_chunk((0,))[1][:16]
+            for c in range(0, n, 1000):
+                text.id.write_direct_chunk((c,), first * 1000)
+        offset = text.id.get_offset()
+    if not chunked:
+        with open(w / "bad.h5", "r+b") as fh:
+            fh.seek(offset)
+            first = fh.read(16)
+            fh.seek(offset)
+            fh.write(first * n)
+    return ["inspect", "bad.h5"]
+
+
+def _string_attribute_array(f: h5py.File, w: Path) -> None:
+    f.attrs["lsgan_version"] = np.array(["0.1"] * 10, dtype=h5py.string_dtype())
+
+
+def _strings_as_numbers(f: h5py.File, w: Path) -> None:
+    n = f["clips/offset"].shape[0]
+    _replace(f, "clips/offset", data=np.array(["0"] * n, dtype=object), dtype=h5py.string_dtype())
+
+
+class _SharedData:
+    """Pickles as a numpy array whose data is ``data``: the pickler memoises it, so every array made of the same
+    bytes object refers to one copy in the file."""
+
+    def __init__(self, data: bytes, shape: tuple[int, ...]) -> None:
+        self.data, self.shape = data, shape
+
+    def __reduce__(self):
+        from numpy._core.multiarray import _reconstruct
+
+        return _reconstruct, (np.ndarray, (0,), b"b"), (1, self.shape, np.dtype("f4"), False, self.data)
+
+
+def _memo_shared_arrays(w: Path, run: Path) -> list:
+    """A HumanAct12 pickle of 500 joints3D arrays whose data is one memoised 20 MB buffer (10 GB built, 21 MB file)."""
+    frames = (20 << 20) // (24 * 3 * 4)
+    data = bytes(frames * 24 * 3 * 4)
+    joints = [_SharedData(data, (frames, 24, 3)) for _ in range(500)]
+    (w / "amp.pkl").write_bytes(pickle.dumps({"joints3D": joints, "y": [0] * 500}, protocol=2))
+    return ["preprocess", "--source", "humanact12", "amp.pkl", "-o", "ha.h5"]
+
+
+def _padded_gzip(text: bytes, mib: int) -> bytes:
+    """``text`` then ``mib`` MiB of spaces as one valid gzip member, built without compressing them all: after a
+    full flush a deflate block refers to nothing before it, so one compressed MiB repeats; the CRC is true."""
+    block = b" " * (1 << 20)
+    c = zlib.compressobj(9, zlib.DEFLATED, -15)
+    head, body = c.compress(text) + c.flush(zlib.Z_FULL_FLUSH), c.compress(block) + c.flush(zlib.Z_FULL_FLUSH)
+    crc = zlib.crc32(text)
+    for _ in range(mib):
+        crc = zlib.crc32(block, crc)
+    size = (len(text) + mib * len(block)) & 0xFFFFFFFF
+    return b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\xff" + head + body * mib + c.flush() + struct.pack("<II", crc, size)
+
+
+def _bvh_gzip_bomb(w: Path, run: Path) -> list:
+    """A valid BVH then 3 GB of spaces, gzipped to 3 MB."""
+    args = _bvh(w, lambda t: t.encode())
+    (w / "bvh" / "walk.bvh.gz").write_bytes(_padded_gzip((w / "bvh" / "walk.bvh").read_bytes(), 3000))
+    (w / "bvh" / "walk.bvh").unlink()
+    return args
+
+
 HOSTILE = {
     "nested-tuple-pickle": (_nested_key, 1, "refused: containers nested more than 100 deep"),
     "s0-dtype": (_s0_dtype, 1, "has zero-size items"),
@@ -517,6 +627,21 @@ HOSTILE = {
     "bvh-frame-time-100000": (lambda w, r: _bvh(w, lambda t: re.sub(r"Frame Time: \S+", "Frame Time: 100000",
                                                                      t).encode()), 1, "frame time 100000 s is outside"),
     "bvh-bom-cr-reads": (lambda w, r: _bvh(w, lambda t: b"\xef\xbb\xbf" + t.replace("\n", "\r").encode()), 0, ""),
+    "hdf5-unwritten-chunks": (_unwritten_chunks, 1, "refused: dataset features declares (32000000, 263) items, "
+                              "33,664,000,000 bytes, but stores only 2 of its 31,250 chunks"),
+    "features-beyond-clips": (lambda w, r: _shard_copy(w, r, _rows_beyond_clips), 1,
+                              "features declares 100,000 rows but its clips use"),
+    "hdf5-shared-strings": (lambda w, r: _shared_strings(w, r, chunked=False), 1,
+                            "refused: its strings would decode to more than"),
+    "hdf5-shared-strings-chunked": (lambda w, r: _shared_strings(w, r, chunked=True), 1,
+                                    "refused: its strings would decode to more than"),
+    "hdf5-string-array-attribute": (lambda w, r: _shard_copy(w, r, _string_attribute_array), 1,
+                                    "refused: attribute lsgan_version of / holds variable-length data of shape (10,)"),
+    "hdf5-strings-as-numbers": (lambda w, r: _shard_copy(w, r, _strings_as_numbers), 1,
+                                "clips/offset holds object, not numbers"),
+    "pickle-memo-shared-data": (_memo_shared_arrays, 1, "refused: the arrays it builds would take more than "
+                                                        "MEMORY_BUDGET"),
+    "bvh-gzip-bomb": (_bvh_gzip_bomb, 1, "refused: inflates to more than"),
 }
 
 
@@ -525,7 +650,7 @@ def test_hostile_input_is_one_line_or_reads(run: Path, tmp_path: Path, case: str
     make, code, phrase = HOSTILE[case]
     args = make(tmp_path, run)
     before = snapshot(tmp_path)
-    out = lsgan(*args, cwd=tmp_path)
+    out = capped_lsgan(*args, cwd=tmp_path)
     assert out.returncode == code, out.stderr[-3000:]
     if code:
         one_error_line(out)

@@ -9,7 +9,6 @@ their size is allocated (:data:`MAX_JOINT_FRAMES`, :data:`MIN_FRAME_TIME`, :data
 """
 from __future__ import annotations
 
-import gzip
 import re
 import warnings
 import zlib
@@ -32,6 +31,19 @@ MAX_JOINT_FRAMES = 10_000_000
 """Most frames x joints a file may declare: forward kinematics holds about 200 bytes per joint and frame
 (rotations and positions, local and global, in float64), so about 2 GB. The largest real clip here holds
 38,657 (CMU 131_02: 1,247 frames of 31 joints); an hour at 120 fps of 22 joints (Bandai's), 9,504,000."""
+
+MAX_VALUE_BYTES = 32
+"""Most text one MOTION value may take with its separator when a ``.bvh.gz`` is inflated: a float64 prints in at
+most 24 characters ('-1.2345678901234567e-308'), exporters write 6-12; the rest is room for padding and CRLF."""
+
+MAX_HEADER_BYTES = 16 << 20
+"""Most inflated text before the MOTION header of a ``.bvh.gz`` (a hierarchy of 1,000 joints takes about 150 KB)."""
+
+MOTION_SLACK = 1 << 20
+"""Inflated text allowed past the values the header declares (trailing blank lines, notes)."""
+
+_PIECE = 1 << 20  # bytes inflated at a time
+_SNIFF = 65536  # where the HIERARCHY keyword must appear
 
 _TOKEN = re.compile(r"[{}]|[^\s{}]+")
 _MOTION = re.compile(
@@ -93,11 +105,59 @@ def _read_bytes(path: str | Path) -> bytes:
     try:
         data = Path(path).read_bytes()
         if data[:2] == b"\x1f\x8b":
-            data = gzip.decompress(data)
+            data = _gunzip(path, data)
     except (OSError, EOFError, zlib.error) as exc:
         raise ClipError(f"{path}: cannot read: {exc}") from exc
     data = data.removeprefix(b"\xef\xbb\xbf")
     return data.replace(b"\r\n", b"\n").replace(b"\r", b"\n") if b"\r" in data else data
+
+
+def _gunzip(path: str | Path, data: bytes) -> bytes:
+    """Inflate gzip ``data`` (one member or several) a piece at a time, refusing (ClipError) as soon as it holds
+    more text than its MOTION header can account for (:func:`_text_limit`): a 3 MB file of spaces would otherwise
+    take 3 GB before any check. Stops early when the text already shows a parse error (no BVH, a bad header)."""
+    out, limit = bytearray(), None
+    inflater, rest = zlib.decompressobj(wbits=31), data  # 31: a gzip header and trailer (CRC checked)
+    while True:
+        piece = inflater.decompress(rest, _PIECE)
+        rest = inflater.unconsumed_tail
+        out += piece
+        limit = _text_limit(out) if limit is None else limit
+        if limit == 0:
+            return bytes(out)
+        if len(out) > (limit or MAX_HEADER_BYTES):
+            why = "more than the frames and channels of its MOTION header can take" if limit else \
+                "with no MOTION header in them"
+            raise ClipError(f"{path}: refused: inflates to more than {limit or MAX_HEADER_BYTES:,} bytes, {why} "
+                            "(a gzip bomb?)")
+        if inflater.eof:
+            rest = inflater.unused_data.lstrip(b"\0")  # gzip's own reader skips zero padding between members
+            if not rest:
+                return bytes(out)
+            inflater = zlib.decompressobj(wbits=31)
+        elif not piece and not rest:
+            raise EOFError("compressed file ended before the end-of-stream marker was reached")
+
+
+def _text_limit(text: bytes) -> int | None:
+    """How many bytes a BVH that starts with ``text`` may take: the header, then MAX_VALUE_BYTES per value its
+    frames x channels declare (at most MAX_JOINT_FRAMES x 6) plus MOTION_SLACK; None while the MOTION header is not
+    in yet; 0 when ``text`` already fails to parse (no HIERARCHY, a frame count that is not a positive number)."""
+    if len(text) > _SNIFF and re.search(rb"^[ \t]*HIERARCHY\b", text[:_SNIFF], re.MULTILINE) is None:
+        return 0
+    if b"MOTION" not in text:  # a fast scan first: this runs on every piece until the header is in
+        return None
+    lf = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    motion = _MOTION.search(lf)
+    if motion is None:
+        return None
+    try:
+        frames = int(motion.group(1))
+    except ValueError:
+        return 0
+    channels = sum(min(int(n), 6) for n in re.findall(rb"CHANNELS\s+(\d+)", lf[:motion.start()], re.I))
+    values = min(max(frames, 0) * channels, MAX_JOINT_FRAMES * 6)
+    return 0 if values == 0 else len(text) + values * MAX_VALUE_BYTES + MOTION_SLACK
 
 
 def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list[list[float]], list[tuple[str, ...]],

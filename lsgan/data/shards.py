@@ -31,11 +31,14 @@ span_frames): preprocess again to get those spans.
 A file that cannot be read or written raises :class:`DataFileError` (a ValueError), one line that
 starts with the file's path. Every HDF5 file lsgan reads is opened by :func:`open_hdf5`, which refuses data
 from outside the file (external storage, external links, virtual datasets) and datasets declaring more than
-the file can hold; a shard's clip table is checked against its features when it is opened.
+the file can hold (or, chunked, more than the chunks it stores can inflate to); a shard's clip table is checked
+against its features when it is opened. Strings are read by :class:`StringReader`, against a budget tied to the
+file's size, and numeric columns by :func:`numbers`, which refuses any other type before reading it.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -52,6 +55,7 @@ from lsgan.data.clip import Caption
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS
 from lsgan.data.tokens import tokenize
 from lsgan.io import atomic_path, discard, publish
+from lsgan.pickles import DEFLATE_MAX_RATIO
 
 FORMAT = "lsgan-motion-shard"
 FORMAT_VERSION = 2
@@ -70,6 +74,26 @@ MAX_COMPRESSED_BYTES = 64 << 30
 more than the file's size, so the file cannot bound it. About 10x the largest dataset lsgan imports: all of
 AMASS (some 40 hours, 2.9 M frames at 20 fps), mirrored, is 5.8 M frames of 263 float32, about 6 GB of
 features. Any other dataset may declare at most the file's size."""
+
+FILTER_MAX_RATIO = {h5py.h5z.FILTER_DEFLATE: DEFLATE_MAX_RATIO, h5py.h5z.FILTER_LZF: 88, h5py.h5z.FILTER_SHUFFLE: 1,
+                    h5py.h5z.FILTER_FLETCHER32: 1}
+"""The most each HDF5 filter can shrink data: deflate (gzip) 1032x, its format's limit; LZF 88x (a back reference
+copies at most 264 bytes and takes 3); shuffle and the checksum nothing. A chunked dataset may declare at most its
+stored bytes times the ratios of its filters: more would be data that no stored byte holds. A filter not listed
+(szip, scale-offset, n-bit, plugins; lsgan writes gzip only) counts as 1x, as uncompressed data does."""
+
+STRING_BUDGET_FACTOR, STRING_BUDGET_SLACK = 4, 16 << 20
+"""The strings of one file may decode to at most 4x its size plus 16 MiB (counted with STRING_ITEM_BYTES each).
+HDF5 stores each variable-length string whole and uncompressed (a 16-byte reference in the dataset, the text and
+a 16-byte header in a global heap), so the strings of a file lsgan wrote count less than 2x its size; references
+that share one stored string are how a 33 MB file decodes to terabytes."""
+
+STRING_ITEM_BYTES = 50
+"""What one decoded string costs besides its text (CPython's str header is 49 bytes), so that a billion empty
+strings count too."""
+
+STRING_BLOCK = 64
+"""Most strings read at once (h5py's per-read overhead, about 35 us, is paid once per block)."""
 
 
 class DataFileError(ValueError):
@@ -152,13 +176,18 @@ def _declared_bytes(shape: tuple[int, ...] | None, type_id) -> int:
 
 
 def _check_attributes(obj, name: str, path: str | os.PathLike, file_size: int) -> None:
-    """Attributes are read whole: none may declare more bytes than the file holds."""
+    """Attributes are read whole: none may declare more bytes than the file holds, and variable-length data only
+    as one string (lsgan writes no other; an array of references to one large stored string decodes to it again
+    for every entry)."""
     for key in obj.attrs:
         attr = obj.attrs.get_id(key)
         declared = _declared_bytes(attr.shape, attr.get_type())
         if declared > file_size:
             raise DataFileError(f"{path}: refused: attribute {key} of {name} declares {declared:,} bytes, more than "
                                 f"the file's {file_size:,}")
+        if attr.dtype.hasobject and not (attr.shape == () and h5py.check_string_dtype(attr.dtype)):
+            raise DataFileError(f"{path}: refused: attribute {key} of {name} holds variable-length data of shape "
+                                f"{attr.shape}, not one string")
 
 
 def _check_dataset(ds: h5py.Dataset, name: str, path: str | os.PathLike, file_size: int) -> None:
@@ -177,6 +206,29 @@ def _check_dataset(ds: h5py.Dataset, name: str, path: str | os.PathLike, file_si
             f"the file's {file_size:,} bytes"
         raise DataFileError(f"{path}: refused: dataset {name} declares {ds.shape} items, {declared:,} bytes, more "
                             f"than {what}")
+    if ds.chunks is not None:
+        problem = _chunks_problem(ds, declared)
+        if problem is not None:
+            raise DataFileError(f"{path}: refused: dataset {name} declares {ds.shape} items, {declared:,} bytes, "
+                                f"but {problem}")
+
+
+def _chunks_problem(ds: h5py.Dataset, declared: int) -> str | None:
+    """What a chunked dataset lacks to hold what it declares, in words; None if nothing. A file lsgan writes stores
+    every chunk (an unwritten one reads as zeros: a few chunks of a resizable dataset could declare 31 GiB), and no
+    filter inflates past :data:`FILTER_MAX_RATIO` of what is stored."""
+    needed = math.prod(-(-n // c) for n, c in zip(ds.shape, ds.chunks))
+    stored = ds.id.get_num_chunks()
+    if stored < needed:
+        return f"stores only {stored:,} of its {needed:,} chunks (unwritten chunks would read as zeros)"
+    plist = ds.id.get_create_plist()
+    filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]  # (code, flags, options, name)
+    stored_bytes = ds.id.get_storage_size()
+    capacity = stored_bytes * math.prod(FILTER_MAX_RATIO.get(f[0], 1) for f in filters)
+    if declared > capacity:
+        names = ", ".join(f[3].decode("ascii", "replace") or str(f[0]) for f in filters) or "none"
+        return f"its {stored_bytes:,} stored bytes inflate to at most {capacity:,} (filters: {names})"
+    return None
 
 
 @contextmanager
@@ -413,19 +465,111 @@ def write_shard(
     return {"clips": len(w.cols["name"]), "frames": w.rows, "captions": len(w.caps["text"])}
 
 
-def _strings(ds) -> list[str]:
-    return [s.decode("utf-8") if isinstance(s, bytes) else s for s in ds[()]]
+def numbers(ds: h5py.Dataset) -> np.ndarray:
+    """A numeric dataset, read whole; any other type (strings, variable-length or compound data, which could decode
+    to far more than the file holds) is refused by name before anything is read."""
+    if ds.dtype.kind not in "biuf":
+        raise ValueError(f"{ds.name.lstrip('/')} holds {ds.dtype}, not numbers")
+    return ds[()]
 
 
-def _read_captions(f: h5py.File, clips: int, version: int) -> list[list[Caption]]:
+def _decoded(values) -> list[str]:
+    return [v.decode("utf-8") if isinstance(v, bytes) else v for v in values]
+
+
+def _stored_lengths(ds: h5py.Dataset, path: str | os.PathLike, address_size: int) -> np.ndarray | None:
+    """The byte length of every string of a contiguous variable-length string dataset, from the references it
+    stores (a 4-byte little-endian length, a global heap address, a 4-byte index), without decoding any; None when
+    its strings are stored otherwise (chunked, compact, not yet written)."""
+    if ds.id.get_create_plist().get_layout() != h5py.h5d.CONTIGUOUS or ds.id.get_offset() is None:
+        return None
+    width = 4 + address_size + 4
+    with open(path, "rb") as fh:  # no more than the file holds: check_storage bounds a contiguous dataset by it
+        fh.seek(ds.id.get_offset())
+        raw = fh.read(ds.size * width)
+    if len(raw) != ds.size * width:
+        return None
+    return np.frombuffer(raw, np.dtype([("length", "<u4"), ("heap", f"V{width - 4}")]))["length"].astype(np.int64)
+
+
+class StringReader:
+    """The string datasets and attributes of one open file, read against one budget: together they may decode to at
+    most STRING_BUDGET_FACTOR x the file's size + STRING_BUDGET_SLACK, else DataFileError naming the file.
+
+    Contiguous variable-length strings (lsgan's layout) and fixed-length ones are costed exactly before they are
+    read. Other layouts (chunked or compact: not lsgan's) are read in blocks sized so that their worst case, every
+    entry a copy of one stored string as large as the file (held twice: HDF5's buffer and Python's copy), fits in
+    what is left: STRING_BLOCK entries for small files, down to one for large ones (slower, never larger).
+    Attributes are read one at a time, each at most one stored string (see :func:`check_storage`). Worst case: the
+    budget plus twice the file's size.
+    """
+
+    def __init__(self, f: h5py.File, path: str | os.PathLike) -> None:
+        self.f, self.path = f, path
+        self.size = os.path.getsize(path)
+        self.limit = STRING_BUDGET_FACTOR * self.size + STRING_BUDGET_SLACK
+        self.used = 0
+
+    def __call__(self, name: str) -> list[str]:
+        """The strings of dataset ``name`` (1-d; a scalar gives one) as str."""
+        ds = self.f[name]
+        if h5py.check_string_dtype(ds.dtype) is None or ds.ndim > 1:
+            raise ValueError(f"{name} holds {ds.dtype} of shape {ds.shape}, not a list of strings")
+        cost = self._known_cost(ds)
+        if cost is None:
+            return self._blocks(ds, name)
+        self._spend(cost, f"{name}: {ds.size:,} strings, {cost:,} bytes")
+        return _decoded([ds[()]] if ds.ndim == 0 else ds[()])
+
+    def attributes(self, obj) -> dict:
+        """The attributes of ``obj``, counted as they are read."""
+        out = {}
+        for key in obj.attrs:
+            out[key] = value = obj.attrs[key]
+            size = value.nbytes if isinstance(value, np.ndarray) else len(value) if isinstance(value, str | bytes) \
+                else 0
+            self._spend(size + STRING_ITEM_BYTES, f"reached with attribute {key}")
+        return out
+
+    def _known_cost(self, ds: h5py.Dataset) -> int | None:
+        """What the strings of ``ds`` take decoded, when that can be told without decoding them."""
+        length = h5py.check_string_dtype(ds.dtype).length
+        if length is not None:
+            return ds.size * (length + STRING_ITEM_BYTES)
+        stored = _stored_lengths(ds, self.path, self.f.id.get_create_plist().get_sizes()[0])
+        return None if stored is None else int(stored.sum()) + ds.size * STRING_ITEM_BYTES
+
+    def _blocks(self, ds: h5py.Dataset, name: str) -> list[str]:
+        """The strings of a dataset whose cost is not known beforehand, counted block by block."""
+        if ds.ndim == 0:
+            value = ds[()]
+            self._spend(len(value) + STRING_ITEM_BYTES, f"reached in {name}")
+            return _decoded([value])
+        out: list[str] = []
+        while len(out) < ds.size:
+            room = (self.limit - self.used) // (2 * max(self.size, 1))
+            block = ds[len(out) : len(out) + max(1, min(STRING_BLOCK, room))]
+            self._spend(sum(len(v) for v in block) + len(block) * STRING_ITEM_BYTES, f"reached in {name}")
+            out += _decoded(block)
+        return out
+
+    def _spend(self, cost: int, what: str) -> None:
+        self.used += cost
+        if self.used > self.limit:
+            raise DataFileError(f"{self.path}: refused: its strings would decode to more than {self.limit:,} bytes "
+                                f"({STRING_BUDGET_FACTOR}x the file's {self.size:,} + {STRING_BUDGET_SLACK >> 20} MiB; "
+                                f"{what}): entries that share one stored string?")
+
+
+def _read_captions(f: h5py.File, strings: StringReader, clips: int, version: int) -> list[list[Caption]]:
     """Each clip's captions; a version 1 file's float32 tags and empty tokens are brought to version 2's."""
-    texts, tokens = _strings(f["captions/text"]), _strings(f["captions/tokens"])
-    starts, ends = f["captions/start"][()], f["captions/end"][()]
+    texts, tokens = strings("captions/text"), strings("captions/tokens")
+    starts, ends = numbers(f["captions/start"]), numbers(f["captions/end"])
     if version < 2:
         starts, ends = ([float(str(np.float32(t))) for t in tags] for tags in (starts, ends))
         tokens = [tok or tokenize(text) for text, tok in zip(texts, tokens)]
     captions: list[list[Caption]] = [[] for _ in range(clips)]
-    for i, c in enumerate(f["captions/clip"][()]):
+    for i, c in enumerate(numbers(f["captions/clip"])):
         captions[c].append(Caption(texts[i], tokens[i], float(starts[i]), float(ends[i])))
     return captions
 
@@ -440,8 +584,9 @@ def _table_problem(f: h5py.File, names: list[str], offsets: np.ndarray, lengths:
     if any(a.dtype.kind not in "iu" for a in (offsets, lengths, actions)):
         return "clips/offset, clips/length and clips/action must hold integers"
     rows = f["features"].shape[0] if f["features"].ndim == 2 else 0
+    ends = offsets.astype(np.int64) + lengths
     checks = ((offsets < 0, "offset {o} is negative"), (lengths < 1, "length {k} is not a positive frame count"),
-              (offsets.astype(np.int64) + lengths > rows, "frames {o}-{e} lie outside the {rows} rows of features"),
+              (ends > rows, "frames {o}-{e} lie outside the {rows} rows of features"),
               ((actions < -1) | (actions >= num_actions), "action {a} is not an index into the {na} action names"))
     for bad, text in checks:
         if bad.any():
@@ -449,12 +594,17 @@ def _table_problem(f: h5py.File, names: list[str], offsets: np.ndarray, lengths:
             o, k = int(offsets[i]), int(lengths[i])
             return f"clip {names[i]} (index {i}): " + text.format(o=o, k=k, e=o + k, rows=rows, a=int(actions[i]),
                                                                    na=num_actions)
+    end = int(ends.max()) if n else 0
+    if rows > end:  # a shard holds its clips' frames and nothing else
+        return f"features declares {rows:,} rows but its clips use {end:,}"
     return None
 
 
 def _widths_problem(f: h5py.File) -> str | None:
-    """The features and statistics must be FEATURE_DIM wide."""
+    """The features must be numbers, and they and the statistics FEATURE_DIM wide."""
     want = {"features": (None, FEATURE_DIM), "stats/mean": (FEATURE_DIM,), "stats/std": (FEATURE_DIM,)}
+    if f["features"].dtype.kind not in "biuf":
+        return f"features holds {f['features'].dtype}, the format says float32"
     for name, shape in want.items():
         got = f[name].shape
         if got is None or len(got) != len(shape) or any(w is not None and g != w for g, w in zip(got, shape)):
@@ -469,7 +619,7 @@ def _captions_problem(f: h5py.File, clips: int) -> str | None:
     for col in _CAPTION_COLUMNS:
         if f[f"captions/{col}"].shape != m:
             return f"captions/{col} has shape {f[f'captions/{col}'].shape}, captions/clip {m}: a damaged caption table"
-    clip = f["captions/clip"][()]
+    clip = numbers(f["captions/clip"])
     if clip.dtype.kind not in "iu" or (len(clip) and (clip.min() < 0 or clip.max() >= clips)):
         return f"captions/clip holds indices outside the {clips} clips"
     return None
@@ -500,23 +650,24 @@ class Shard:
         self.source: str = f.attrs["source"]
         self.fps = int(f.attrs["fps"])
         self.action_names: list[str] = json.loads(f.attrs["action_names"])
-        self.names = _strings(f["clips/name"])
-        self.offsets = f["clips/offset"][()]
-        self.lengths = f["clips/length"][()]
-        self.splits = np.array(_strings(f["clips/split"]))
-        self.actions = f["clips/action"][()]
-        self.source_files = _strings(f["clips/source_file"])
-        self.mirror_of = _strings(f["clips/mirror_of"])
-        self.mean = f["stats/mean"][()]
-        self.std = f["stats/std"][()]
+        strings = StringReader(f, self.path)
+        self.names = strings("clips/name")
+        self.offsets = numbers(f["clips/offset"])
+        self.lengths = numbers(f["clips/length"])
+        self.splits = np.array(strings("clips/split"))
+        self.actions = numbers(f["clips/action"])
+        self.source_files = strings("clips/source_file")
+        self.mirror_of = strings("clips/mirror_of")
+        self.mean = numbers(f["stats/mean"])
+        self.std = numbers(f["stats/std"])
         self.stats_origin = f["stats"].attrs.get("origin", "")
         self._check_table(f)
-        self._captions = _read_captions(f, len(self.names), int(f.attrs["format_version"]))
+        self._captions = _read_captions(f, strings, len(self.names), int(f.attrs["format_version"]))
+        self.attrs = strings.attributes(f)
         self._features = f["features"]
         self._compressed = self._features.compression is not None
         if in_memory:
             self._features = self.all_features()
-        self.attrs = dict(f.attrs)
 
     def _check_table(self, f: h5py.File) -> None:
         """Refuse (DataFileError) a clip table that does not fit the format: columns of one length, every clip's
@@ -542,7 +693,7 @@ class Shard:
     @property
     def provenance(self) -> dict:
         with reading(self.path, _SHARD):
-            return json.loads(self._file["provenance"][()])
+            return json.loads(StringReader(self._file, self.path)("provenance")[0])
 
     def __len__(self) -> int:
         return len(self.names)

@@ -27,7 +27,16 @@ import h5py
 import numpy as np
 
 from lsgan import __version__
-from lsgan.data.shards import DataFileError, check_layout, check_writable, hdf5_output, open_hdf5, reading
+from lsgan.data.shards import (
+    DataFileError,
+    StringReader,
+    check_layout,
+    check_writable,
+    hdf5_output,
+    numbers,
+    open_hdf5,
+    reading,
+)
 from lsgan.faults import fault_point
 
 FORMAT = "lsgan-latent-cache"
@@ -124,15 +133,11 @@ def write_latent_cache(
     return path
 
 
-def _strings(ds) -> list[str]:
-    return [s.decode("utf-8") if isinstance(s, bytes) else s for s in ds[()]]
-
-
 def read_cache_attrs(path: str | os.PathLike) -> dict:
     """The root attributes of a cache (cheap: no arrays are read)."""
     with open_hdf5(path) as f, reading(path, _CACHE):
         check_layout(f, path, _CACHE, FORMAT, FORMAT_VERSION, _DATASETS, _ATTRS, _HINT)
-        return dict(f.attrs)
+        return StringReader(f, path).attributes(f)
 
 
 def read_latent_cache(
@@ -142,7 +147,8 @@ def read_latent_cache(
     path = Path(path)
     with open_hdf5(path) as f, reading(path, _CACHE):
         check_layout(f, path, _CACHE, FORMAT, FORMAT_VERSION, _DATASETS, _ATTRS, _HINT)
-        attrs = dict(f.attrs)
+        strings = StringReader(f, path)
+        attrs = strings.attributes(f)
         problem = _cache_problem(f, attrs)
         if problem is not None:
             raise DataFileError(f"{path}: {problem}")
@@ -157,17 +163,17 @@ def read_latent_cache(
                 "run `lsgan encode-latents` again with the encoder you want"
             )
         return LatentCacheData(
-            names=_strings(f["clips/name"]),
-            splits=np.array(_strings(f["clips/split"])),
-            actions=f["clips/action"][()],
-            lengths=f["clips/length"][()],
-            mu=f["latents/mu"][()],
-            logvar=f["latents/logvar"][()],
-            caption_clip=f["captions/clip"][()],
-            caption_text=_strings(f["captions/text"]),
-            caption_embedding=f["captions/embedding"][()],
-            mean=f["stats/mean"][()],
-            std=f["stats/std"][()],
+            names=strings("clips/name"),
+            splits=np.array(strings("clips/split")),
+            actions=numbers(f["clips/action"]),
+            lengths=numbers(f["clips/length"]),
+            mu=numbers(f["latents/mu"]),
+            logvar=numbers(f["latents/logvar"]),
+            caption_clip=numbers(f["captions/clip"]),
+            caption_text=strings("captions/text"),
+            caption_embedding=numbers(f["captions/embedding"]),
+            mean=numbers(f["stats/mean"]),
+            std=numbers(f["stats/std"]),
             action_names=json.loads(attrs["action_names"]),
             vae_hash=str(attrs["vae_hash"]),
             text_encoder=str(attrs["text_encoder"]),
@@ -188,7 +194,7 @@ def _cache_problem(f: h5py.File, attrs: dict) -> str | None:
         if f[name].shape != shape:
             return f"{name} has shape {f[name].shape}, expected {shape} ({n} windows, {m} captions, latent width " \
                    f"{z}, text width {d})"
-    lengths, actions, clip = f["clips/length"][()], f["clips/action"][()], f["captions/clip"][()]
+    lengths, actions, clip = (numbers(f[name]) for name in ("clips/length", "clips/action", "captions/clip"))
     num_actions = len(json.loads(attrs["action_names"]))
     if any(a.dtype.kind not in "iu" for a in (lengths, actions, clip)):
         return "clips/length, clips/action and captions/clip must hold integers"
