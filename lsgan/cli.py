@@ -131,8 +131,23 @@ def describe(error: BaseException) -> str:
         return f"{error.filename}: {said[:1].lower()}{said[1:]}"
     if isinstance(error, (ValueError, OSError, RuntimeError)) and str(error):
         return str(error)
+    if isinstance(error, MemoryError):
+        return _out_of_memory(error)
     return (f"internal error: {type(error).__name__}: {error} (please report it; LSGAN_DEBUG=1 or --debug "
             "shows the traceback)")
+
+
+def _out_of_memory(error: MemoryError) -> str:
+    """A MemoryError no reader refused beforehand, in one line: the allocation that failed (numpy says its size)
+    and the file being worked on, the ``path`` of the innermost function of the traceback that has one."""
+    lines = str(error).strip().splitlines()
+    detail = lines[0][:200] if lines else "an allocation failed"
+    path, tb = None, error.__traceback__
+    while tb is not None:
+        value = tb.tb_frame.f_locals.get("path")
+        path = value if isinstance(value, (str, os.PathLike)) else path
+        tb = tb.tb_next
+    return f"{path}: out of memory ({detail})" if path is not None else f"out of memory ({detail})"
 
 
 def _plainly(error: Exception) -> str:
@@ -150,13 +165,15 @@ class LsganGroup(click.Group):
     is raised again, and a run that received one exits 130 whatever became of the exception.
     """
 
-
     command_class = LsganCommand
 
     def main(self, *args, **kwargs):
+        from lsgan.outputs import claims
+
         guard = _startup_guard.pop() if _startup_guard else InterruptGuard()
         try:
-            code = self._run(guard, *args, **kwargs)
+            with claims():  # what the command claims to write, noted for other lsgan processes while it runs
+                code = self._run(guard, *args, **kwargs)
         except BaseException:  # --debug: the traceback, with the caller's handler back
             guard.stop()
             raise
@@ -690,8 +707,8 @@ Examples:
 @click.option("--vae", type=In(exists=True),
               help="The VAE whose latents the generator learned (--runtime torch; an ONNX export holds its decoder).")
 @click.option("--runtime", type=click.Choice(["torch", "onnx"]), default="torch", show_default=True,
-              help="torch: the checkpoints; onnx: an exported folder, run by onnxruntime without torch (its noise is "
-                   "drawn with numpy, so the same --seed gives other motions than torch's).")
+              help="torch: the checkpoints; onnx: an exported folder, run by onnxruntime without torch (the same "
+                   "--seed gives the same motions in both).")
 @click.option("--int8", is_flag=True, help="--runtime onnx: the int8 graphs (an export made with --int8).")
 @click.option("--text", "texts", multiple=True, help="A prompt (repeat for several).")
 @click.option("--prompts", type=In(exists=True, dir_okay=False), help="File with one prompt per line (optional #frames).")
@@ -711,10 +728,12 @@ Examples:
 @click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps (default: the checkpoint's, 50 in MLD).")
 @click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")
 @click.option("-o", "--output", required=True, type=Out(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
+@click.option("--raw-joints", is_flag=True, help="Also write *_joints_raw.npy: the joints as decoded (recovered from "
+              "*_features.npy), before they were made rigid; *_joints.npy, the previews and exports are the rigid ones.")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
               "wrote there (never other files).")
 def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, frames, seconds, num, seed,
-             text_encoder_path, batch_size, device, steps, guidance, output, force) -> None:
+             text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.generation import Request, claim_generation, read_prompts, write_generation
@@ -731,7 +750,7 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
                                 seconds=seconds, num=num)
         return _generate_timeline(timeline, overlap, gan=gan, vae=vae, runtime=runtime, int8=int8, seed=seed,
                                   device=device, text_encoder_path=text_encoder_path, batch_size=batch_size,
-                                  steps=steps, guidance=guidance, output=output, force=force)
+                                  steps=steps, guidance=guidance, output=output, raw_joints=raw_joints, force=force)
     requests = [Request(text=t, frames=n_frames) for t in texts] + [Request(action=a, frames=n_frames) for a in actions]
     if prompts:
         requests += read_prompts(prompts, n_frames)
@@ -752,7 +771,7 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
         if result.kind == "gan" and (steps is not None or guidance is not None):
             click.echo(f"note: --steps/--guidance ignored: {gan} is a GAN (they set a diffusion model's sampling)",
                        err=True)
-        manifest = write_generation(result, output, force=force)
+        manifest = write_generation(result, output, force=force, raw_joints=raw_joints)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
     t = result.timings_s
@@ -773,7 +792,7 @@ def _check_timeline_options(timeline, *, texts, prompts, actions, frames, second
                                "lengths of one motion)")
 
 
-def _generate_timeline(timeline: str, overlap: int | None, *, gan, vae, output, force, **options) -> None:
+def _generate_timeline(timeline: str, overlap: int | None, *, gan, vae, output, raw_joints, force, **options) -> None:
     """``generate --timeline``: parse (an inline timeline's errors are usage errors), generate, join, write."""
     from lsgan.generation import claim_generation, write_generation
     from lsgan.timeline import DEFAULT_OVERLAP, TimelineError, generate_timeline, parse_timeline
@@ -788,7 +807,7 @@ def _generate_timeline(timeline: str, overlap: int | None, *, gan, vae, output, 
         claim_generation(output, gan, *([vae] if vae else []), *([source] if source else []), force=force)
         result = generate_timeline(gan, vae, segments, overlap=DEFAULT_OVERLAP if overlap is None else overlap,
                                    source=source, **options)
-        manifest = write_generation(result, output, force=force)
+        manifest = write_generation(result, output, force=force, raw_joints=raw_joints)
     except (ValueError, FileNotFoundError) as e:
         _fail(str(e))
     n = len(result.motions[0].features)

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lsgan.data.features import recover_from_ric
 # re-exported: the structures and the writer, torch-free in lsgan.generation, shared with the ONNX runtime
 from lsgan.generation import (  # noqa: F401
     CPU_DECODE_FRAMES,
@@ -25,9 +24,11 @@ from lsgan.generation import (  # noqa: F401
     Request,
     claim_generation,
     decode_batches,
+    decoded_motion,
     read_prompts,
     write_generation,
 )
+from lsgan.generation import draw_noise as numpy_noise
 from lsgan.threads import LARGE_BATCH, ThreadPolicy
 
 
@@ -149,10 +150,10 @@ def _conditions(model, extra: dict, name, requests: list[Request], dev: torch.de
 
 
 def draw_noise(seed: int, n: int, dim: int) -> tuple[torch.Tensor, torch.Generator]:
-    """The starting noise (n, dim) of ``generate --seed SEED`` for n motions, drawn on the CPU, and its generator
-    (a diffusion's later steps go on drawing from it)."""
-    g = torch.Generator(device="cpu").manual_seed(seed)
-    return torch.randn(n, dim, generator=g), g
+    """The starting noise (n, dim) of ``generate --seed SEED`` for n motions: the draw every runtime makes
+    (:func:`lsgan.generation.draw_noise`, numpy's), as a CPU tensor; and a torch generator seeded with ``seed``, from
+    which a diffusion's DDIM steps draw their own noise (eta > 0; only the torch runtime samples a diffusion)."""
+    return torch.from_numpy(numpy_noise(seed, n, dim)), torch.Generator(device="cpu").manual_seed(seed)
 
 
 def noise_dim(model, meta: dict) -> int:
@@ -285,11 +286,7 @@ def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, se
     noise, g = draw_noise(seed, len(requests) * num, noise_dim(loaded.model, loaded.meta))
     feats, timings, sampling = run_models(loaded, requests, [num] * len(requests), noise, g=g, batch_size=batch_size,
                                           steps=steps, guidance=guidance, eta=eta)
-    motions = [
-        Motion(request=requests[k // num], sample=k % num, features=f.astype(np.float32),
-               joints=recover_from_ric(f.astype(np.float32)))
-        for k, f in enumerate(feats)
-    ]
+    motions = [decoded_motion(requests[k // num], k % num, f) for k, f in enumerate(feats)]
     return Generation(motions=motions, timings_s=timings, gan=loaded.gan, vae=loaded.vae, seed=seed,
                       kind=loaded.meta["kind"], sampling=sampling)
 

@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from lsgan import outputs
+from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS
+from lsgan.export.rigid import make_rigid
 from lsgan.io import atomic_file
 
 
@@ -55,7 +57,23 @@ class Motion:
     request: Request
     sample: int
     features: np.ndarray  # (T, 263), de-normalised
-    joints: np.ndarray  # (T, 22, 3)
+    joints: np.ndarray  # (T, 22, 3): the motion of record, made rigid (lsgan.export.rigid)
+    raw_joints: np.ndarray | None = None  # (T, 22, 3): recover_from_ric of the features, as decoded
+
+
+def draw_noise(seed: int, n: int, dim: int) -> np.ndarray:
+    """The starting noise (n, dim) float32 ~ N(0, 1) of ``seed`` in every runtime (torch, ONNX, the server): numpy's
+    ``default_rng(seed).standard_normal``, so that one seed gives one motion whichever runtime runs the model."""
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    return np.random.default_rng(seed).standard_normal((n, dim), dtype=np.float32)
+
+
+def decoded_motion(request: Request, sample: int, features: np.ndarray) -> Motion:
+    """The Motion of decoded features (T, 263): joints recovered once and made rigid once, the raw ones kept."""
+    features = np.asarray(features, dtype=np.float32)
+    raw = recover_from_ric(features)
+    return Motion(request=request, sample=sample, features=features, joints=make_rigid(raw), raw_joints=raw)
 
 
 @dataclass
@@ -113,8 +131,11 @@ def _checkpoints(result: Generation) -> dict:
             for name, path in (("generator", result.gan), ("vae", result.vae))}
 
 
-def write_generation(result: Generation, out: str | os.PathLike, *, force: bool = False) -> Path:
-    """features ``.npy``, joints ``.npy`` (T,22,3) per motion and ``manifest.json``; returns the manifest path.
+def write_generation(result: Generation, out: str | os.PathLike, *, force: bool = False,
+                     raw_joints: bool = False) -> Path:
+    """features ``.npy``, joints ``.npy`` (T,22,3, rigid) per motion and ``manifest.json``; returns the manifest
+    path. ``raw_joints`` also writes each motion's decoded joints before they were made rigid (``_joints_raw.npy``,
+    a name ``lsgan export`` passes over).
 
     An existing ``out`` is refused unless ``force``, which first clears the files an earlier lsgan run wrote
     there (and only those).
@@ -124,13 +145,16 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
     entries = []
     for i, m in enumerate(result.motions):
         stem = f"{i:03d}_{_slug(m.request.text or m.request.action or 'motion')}"
-        for suffix, array in (("features", m.features), ("joints", m.joints)):
+        arrays = [("features", m.features), ("joints", m.joints)]
+        if raw_joints:
+            arrays.append(("joints_raw", m.raw_joints if m.raw_joints is not None else recover_from_ric(m.features)))
+        for suffix, array in arrays:
             with atomic_file(outputs.claim_file(out / f"{stem}_{suffix}.npy", force=True)) as fh:
                 np.save(fh, array)
         entries.append({
             "index": i, "text": m.request.text, "action": m.request.action, "frames": int(len(m.features)),
             "seconds": len(m.features) / FPS, "sample": m.sample, "features": f"{stem}_features.npy",
-            "joints": f"{stem}_joints.npy",
+            "joints": f"{stem}_joints.npy", **({"raw_joints": f"{stem}_joints_raw.npy"} if raw_joints else {}),
         })
     sources = _checkpoints(result)
     generator = sources["generator"]

@@ -2,7 +2,8 @@
 
 Each segment is generated on its own at its length plus ``overlap`` frames (the last at its length), all in one
 batch, so segment i is exactly what ``generate --prompts`` makes for the same ``prompt#length`` lines and seed.
-Consecutive segments are cross-faded over the overlap, and the joints are recovered once from the joined features.
+Consecutive segments are cross-faded over the overlap, and the joints are recovered once from the joined features
+and made rigid once (:func:`lsgan.generation.decoded_motion`).
 
 Why join in feature space: HumanML3D features are root-relative. Channels 0-2 are the root's yaw velocity and
 its linear velocity in the root's own heading frame, channel 3 its height, and the pose channels (positions,
@@ -29,8 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lsgan.data.features import recover_from_ric
-from lsgan.generation import Generation, Motion, Request
+from lsgan.generation import Generation, Request, decoded_motion
 
 DEFAULT_OVERLAP = 10
 MIN_FRAMES = 4  # what ``generate`` asks of a motion
@@ -140,7 +140,7 @@ def join_generation(result: Generation, segments: list[Segment], overlap: int, s
     features = join_features([m.features for m in result.motions], frames, overlap)
     starts = np.concatenate([[0], np.cumsum(frames)[:-1]]).tolist()
     text = "; ".join(s.text for s in segments)
-    motion = Motion(Request(text=text, frames=len(features)), 0, features, recover_from_ric(features))
+    motion = decoded_motion(Request(text=text, frames=len(features)), 0, features)
     timeline = {
         "source": str(source) if source else "inline",
         "overlap": overlap,

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from cli_runs import lsgan, snapshot, tiny_pipeline
 
 from lsgan.deploy.int8 import joint_error_mm
@@ -37,11 +36,6 @@ def runs(tmp_path_factory) -> Path:
         ("export-model", "gan", "-o", "gan-onnx", "--onnx", "--int8"),
         ("export-model", "act-gan", "--vae", "vae", "-o", "act-onnx", "--onnx"),
     )
-
-
-def torch_noise(seed: int, n: int, noise_dim: int) -> np.ndarray:
-    """The noise lsgan.generate draws for ``seed``: feeding it to the ONNX runtime makes the same motions."""
-    return torch.randn(n, noise_dim, generator=torch.Generator().manual_seed(seed)).numpy()
 
 
 def test_export_writes_the_promised_files(runs: Path) -> None:
@@ -79,10 +73,11 @@ def test_export_writes_the_promised_files(runs: Path) -> None:
     (PROMPTS, [150] * 7, 1),  # batch 7, prompts of other token counts than the 9 traced
 ])
 def test_fp32_graphs_give_torchs_features(runs: Path, one_thread, prompts, frames, num) -> None:
-    """Same noise, same prompts: the ONNX runtime's features and joints equal lsgan.generate's within 1e-4."""
+    """Same seed, same prompts: the ONNX runtime's features and joints equal lsgan.generate's within 1e-4 (both
+    runtimes draw the same noise from a seed)."""
     requests = [Request(text=p, frames=f) for p, f in zip(prompts, frames)]
     ref = generate(runs / "gan", runs / "vae", requests, num=num, seed=3, device="cpu")
-    got = load(runs / "gan-onnx", threads=1).generate(requests, num=num, noise=torch_noise(3, len(requests) * num, 8))
+    got = load(runs / "gan-onnx", threads=1).generate(requests, num=num, seed=3)
     assert [m.features.shape for m in got.motions] == [m.features.shape for m in ref.motions]
     for a, b in zip(got.motions, ref.motions):
         np.testing.assert_allclose(a.features, b.features, atol=1e-4, rtol=0)
@@ -117,7 +112,7 @@ def test_action_gan_exports_and_matches_torch(runs: Path, one_thread) -> None:
     names = model.manifest["action_names"]
     requests = [Request(action=names[i % len(names)], frames=f) for i, f in enumerate([48, 120, 196])]
     ref = generate(runs / "act-gan", runs / "vae", requests, seed=1, device="cpu")
-    got = model.generate(requests, noise=torch_noise(1, 3, 8))
+    got = model.generate(requests, seed=1)
     for a, b in zip(got.motions, ref.motions):
         np.testing.assert_allclose(a.features, b.features, atol=1e-4, rtol=0)
 
@@ -197,6 +192,22 @@ def test_generate_runtime_onnx_is_deterministic(runs: Path, tmp_path: Path) -> N
     for name in files:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
     assert not np.array_equal(np.load(tmp_path / "a" / files[0]), np.load(tmp_path / "c" / files[0]))
+
+
+def test_one_seed_gives_one_motion_in_both_runtimes(runs: Path, tmp_path: Path) -> None:
+    """``lsgan generate --seed 7`` under torch and under ``--runtime onnx`` (fp32): the same features within 1e-4 and
+    the same rigid joints, for every motion."""
+    args = ["--text", PROMPTS[0], "--text", PROMPTS[4], "--frames", 64, "--num", 3, "--seed", 7]
+    for name, runtime in (("torch", ["--gan", runs / "gan", "--vae", runs / "vae"]),
+                          ("onnx", ["--runtime", "onnx", "--gan", runs / "gan-onnx"])):
+        out = lsgan("generate", *runtime, *args, "-o", tmp_path / name, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+    entries = json.loads((tmp_path / "torch" / "manifest.json").read_text())["motions"]
+    assert len(entries) == 6
+    for e in entries:
+        for kind in ("features", "joints"):
+            a, b = (np.load(tmp_path / name / e[kind]) for name in ("torch", "onnx"))
+            np.testing.assert_allclose(b, a, atol=1e-4, rtol=0, err_msg=f"{e[kind]}")
 
 
 @pytest.mark.parametrize("threads, spin_us, spinning", [(1, SPIN_US, "0"), (2, SPIN_US, "1"), (2, 0, "0")])

@@ -17,7 +17,7 @@ degrees (cosine 0.94), the generator answered with other motions, and the joints
 
 The price is measured at export time and stored in the manifest: the same 100 fixed requests and seed through
 the fp32 and the int8 graphs, the distance between their 22 joints (``recover_from_ric`` of the de-normalised
-features), mean and max over every joint of every frame, in millimetres.
+features, made rigid as every output is), mean and max over every joint of every frame, in millimetres.
 """
 from __future__ import annotations
 

@@ -4,9 +4,8 @@ The pipeline is the torch one (:func:`lsgan.generate.generate`) step by step: to
 tokenizer.json: lowercase WordPiece, truncated at its max length, padded to the longest prompt of a batch),
 text encoder (mean-pooled, L2-normalised embedding), generator (noise ~ N(0, 1), standardised latent),
 de-standardise (latent * std + mean), decoder (with a mask of the real frames), de-normalise
-(features * Std + Mean), joints by the HumanML3D recovery. Only the noise differs: it is drawn with numpy from
-the seed, so for the same seed the ONNX and torch runtimes make different motions; pass the same ``noise`` to
-compare them.
+(features * Std + Mean), joints by the HumanML3D recovery made rigid (:mod:`lsgan.export.rigid`). The noise is
+the same draw as torch's (:func:`lsgan.generation.draw_noise`), so one seed gives one motion in both runtimes.
 
 Sessions run one intra-op thread per usable core (``threads=``, ``LSGAN_THREADS`` or ``OMP_NUM_THREADS`` fix
 another count), and their threads spin-wait between operations, for at most :data:`SPIN_US`, only while other
@@ -27,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lsgan.data.features import recover_from_ric
 from lsgan.deploy.manifest import GRAPHS, read_manifest, variant_files, verify
-from lsgan.generation import CPU_DECODE_FRAMES, Generation, Motion, Request, decode_batches
+from lsgan.generation import CPU_DECODE_FRAMES, Generation, Request, decode_batches, decoded_motion, draw_noise
 from lsgan.textcache import PromptCache
 from lsgan.threads import FreeCores, fixed_threads, usable_cpus
 
@@ -85,11 +83,6 @@ def open_session(path: Path, options):
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own types for damaged graphs
         detail = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise ValueError(f"{path}: onnxruntime cannot load it ({detail[:300]})") from None
-
-
-def draw_noise(seed: int, n: int, noise_dim: int) -> np.ndarray:
-    """The generator's noise (n, noise_dim) float32 ~ N(0, 1), from numpy's default generator seeded with ``seed``."""
-    return np.random.default_rng(seed).standard_normal((n, noise_dim), dtype=np.float32)
 
 
 class OnnxMotionModel:
@@ -212,8 +205,7 @@ class OnnxMotionModel:
         t0 = time.perf_counter()
         feats = self.decode(z, frames, batch_size)
         timings["vae_decoding"] = time.perf_counter() - t0
-        motions = [Motion(request=requests[k // num], sample=k % num, features=f, joints=recover_from_ric(f))
-                   for k, f in enumerate(feats)]
+        motions = [decoded_motion(requests[k // num], k % num, f) for k, f in enumerate(feats)]
         return Generation(motions=motions, timings_s=timings, seed=seed, **self._provenance())
 
     def _provenance(self) -> dict:

@@ -341,7 +341,7 @@ def evaluate_action_to_motion(
                 progress(f"replication {r + 1}/{replications}: {name}")
             requests = [Request(action=names[labels_all[i]], frames=len(real[i])) for i in pick]
             out = generate(path, vae, requests, num=1, seed=seed + r, device=str(dev), **gen_kwargs)
-            joints = [m.joints for m in out.motions]
+            joints = [m.raw_joints for m in out.motions]  # the decoded joints, as the protocol scores them
             rows[name] = (clf.features(joints), labels_all[pick], clf.predict(joints))
         for name, (feat, labels, pred) in rows.items():
             table.add(name, "fid", M.fid(real_feat, feat))

@@ -3,11 +3,10 @@
 HumanML3D's frame is the body models' own (Y up, the body facing +Z, left = +X, metres), so the fitted
 ``global_orient`` needs no axis change. Two stages, no pose prior files:
 
-1. Analytic IK on the model's rest skeleton, warm-started frame to frame: a joint with several children
-   (pelvis, spine3) gets the Kabsch rotation of its rest child offsets onto the observed ones; a joint
-   with one child carries its previous frame's rotation along by the shortest arc between consecutive
-   bone directions (so the twist about the bone is continuous and never flips), then relaxes a fraction
-   ``TWIST_RELAX`` of the way towards the twist-free swing from the rest pose (so twist cannot drift).
+1. Analytic IK on the model's rest skeleton, the BVH export's: a joint with several children (pelvis,
+   spine3) gets the Kabsch rotation of its rest child offsets onto the observed ones; a joint with one
+   child aims its bone with the twist taken from the body (:mod:`lsgan.export.aim`), so the twist about
+   each bone is the one the bend planes, feet and hips and shoulders lines say, and never drifts.
 2. Batched refinement in torch (L-BFGS, all frames at once) of the axis-angle poses, the translations and
    one shared set of betas: squared joint error through smplx's rigid chain, plus a temporal smoothness
    term, a pull towards the IK start (the twist about a bone is invisible to joint positions) and a small
@@ -23,10 +22,9 @@ from scipy.spatial.transform import Rotation
 
 from lsgan.data.body_model import NUM_BETAS, BodyModel
 from lsgan.data.skeleton import NUM_JOINTS, PARENTS
-from lsgan.export.bvh import joint_rotations, shortest_arc
+from lsgan.export.bvh import joint_rotations
 from lsgan.io import atomic_file
 
-TWIST_RELAX = 0.03
 CM = 100.0  # joint errors enter the losses in centimetres, so 1 mm weighs 0.01 against the weights below
 SMOOTH_WEIGHT = 1e-3
 INIT_WEIGHT = 1e-4
@@ -60,29 +58,12 @@ def _rotvec(mats: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(mats.reshape(-1, 3, 3)).as_rotvec().reshape(mats.shape[:-2] + (3,))
 
 
-def _continue_twist(swing: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """Local rotations (T,3,3) for one single-child joint: transported frame to frame, relaxed to ``swing``.
-
-    ``swing[t]`` turns the rest bone onto ``seen[t]`` without twist. Each frame starts from the previous
-    frame's result turned by the shortest arc from ``seen[t-1]`` to ``seen[t]``; both rotations then map
-    the rest bone onto ``seen[t]``, so they differ by a twist about it, of which ``TWIST_RELAX`` is undone.
-    """
-    out = np.empty_like(swing)
-    out[0] = swing[0]
-    arcs = shortest_arc(seen[:-1], seen[1:])
-    for t in range(1, len(swing)):
-        carried = arcs[t - 1] @ out[t - 1]
-        twist = Rotation.from_matrix(swing[t].T @ carried).as_rotvec()
-        out[t] = swing[t] @ Rotation.from_rotvec((1.0 - TWIST_RELAX) * twist).as_matrix()
-    return out
-
-
 def ik_start(joints: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """Local rotations (T,22,3,3) posing the rest joints ``rest`` (>=22,3) like ``joints`` (stage 1): the BVH
-    export's IK, with each single-child joint's twist carried from frame to frame (:func:`_continue_twist`)."""
+    export's IK (:func:`lsgan.export.bvh.joint_rotations`), twists from the body."""
     offsets = np.zeros((NUM_JOINTS, 3))
     offsets[1:] = rest[1:NUM_JOINTS] - rest[list(PARENTS[1:])]
-    return joint_rotations(joints, offsets, single_child=_continue_twist)
+    return joint_rotations(joints, offsets)
 
 
 def _torch_model(model: BodyModel, device: str):

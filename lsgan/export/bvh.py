@@ -12,8 +12,9 @@ neck + collars) keep the input's mean relative layout instead, so that one rigid
 joint can place all of them; that layout is turned to lie as close as possible to the raw directions.
 
 Rotations come from IK on the positions, so bones stay rigid: a branching joint's global orientation is
-the Kabsch fit of its rest child offsets onto the observed ones; a joint with one child gets the shortest
-arc (swing, no twist) from its rest bone direction to the observed one, in its parent's frame; leaves get
+the Kabsch fit of its rest child offsets onto the observed ones; a joint with one child aims its rest bone
+along the observed one with its twist taken from the body (:mod:`lsgan.export.aim`: knees and elbows from
+their bend plane, feet from the toe and the floor, the spine from the hips and shoulders lines); leaves get
 the identity.
 """
 from __future__ import annotations
@@ -98,15 +99,19 @@ def rest_offsets(joints: np.ndarray) -> np.ndarray:
     return offsets
 
 
-def joint_rotations(joints: np.ndarray, offsets: np.ndarray, single_child=None) -> np.ndarray:
+def joint_rotations(joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Local rotations (T,22,3,3) that pose the rest skeleton ``offsets`` like ``joints`` (hierarchical FK).
 
-    A joint with several children turns onto all of their bones at once (Kabsch); one with a single child turns its
-    rest bone onto the observed one by ``single_child(swing, seen)``: the swing (T,3,3), the shortest arc without
-    twist, and the observed bone in the parent's frame (T,3) give the rotation (default: the swing itself).
+    A joint with several children turns onto all of their bones at once (Kabsch); one with a single child aims
+    its rest bone along the observed one and takes its twist from the body (:mod:`lsgan.export.aim`: the axis
+    that faces the bone's reference direction at rest faces it in every frame); leaves keep the identity.
     """
+    from lsgan.export.aim import aim_frames, reference_directions, smpl_axes
+
     j = np.asarray(joints, dtype=np.float64)
     t = j.shape[0]
+    axes = smpl_axes(_rest_positions(offsets))
+    refs = reference_directions(j)
     eye = np.broadcast_to(np.eye(3), (t, 3, 3))
     global_rot = np.empty((t, NUM_JOINTS, 3, 3))
     local_rot = np.empty((t, NUM_JOINTS, 3, 3))
@@ -114,16 +119,22 @@ def joint_rotations(joints: np.ndarray, offsets: np.ndarray, single_child=None) 
         parent_rot = eye if PARENTS[k] < 0 else global_rot[:, PARENTS[k]]
         kids = list(CHILDREN[k])
         if len(kids) > 1:
-            local = np.swapaxes(parent_rot, -1, -2) @ kabsch(offsets[kids], j[:, kids] - j[:, [k]])
+            world = kabsch(offsets[kids], j[:, kids] - j[:, [k]])
         elif kids:
-            seen = np.einsum("tji,tj->ti", parent_rot, j[:, kids[0]] - j[:, k])
-            swing = shortest_arc(offsets[kids[0]], seen)
-            local = swing if single_child is None else single_child(swing, seen)
+            world = aim_frames(offsets[kids[0]], axes[k], j[:, kids[0]] - j[:, k], refs[:, kids[0]])
         else:
-            local = eye
-        local_rot[:, k] = local
-        global_rot[:, k] = parent_rot @ local
+            world = parent_rot
+        local_rot[:, k] = np.swapaxes(parent_rot, -1, -2) @ world
+        global_rot[:, k] = world
     return local_rot
+
+
+def _rest_positions(offsets: np.ndarray) -> np.ndarray:
+    """Rest joint positions (22,3) of rest offsets (22,3): offsets summed down the chains."""
+    pos = np.zeros((NUM_JOINTS, 3))
+    for k in range(NUM_JOINTS):
+        pos[k] = offsets[k] + (pos[PARENTS[k]] if PARENTS[k] >= 0 else 0.0)
+    return pos
 
 
 def channel_values(local: np.ndarray, translations: np.ndarray, channels) -> np.ndarray:

@@ -4,9 +4,9 @@ The file holds a "lsgan_motion" root node whose only child is the pelvis; below 
 (named after ``JOINT_NAMES``, children per ``PARENTS``) whose rest translation is the fitted rest offset
 (:func:`lsgan.export.bvh.rest_offsets`, metres) and whose rest rotation is the first frame's pose. The joint
 nodes are the joints of a glTF skin: one skinned mesh (a scene root node, "lsgan_skeleton") made of trimesh
-primitives, an icosphere at every joint and a capsule along every bone (leaves get a stub of ``STUB_FRACTION``
-of their own bone), each vertex bound to one joint, so Blender and engines import an armature. One animation at
-the motion's fps has a LINEAR rotation channel per joint (the IK of :func:`lsgan.export.bvh.joint_rotations`,
+primitives, an icosphere at every joint and a capsule along every bone of at least ``MIN_BONE_M`` (leaves get a
+stub of ``STUB_FRACTION`` of their own bone), each vertex bound to one joint, so Blender and engines import an
+armature. One animation at the motion's fps has a LINEAR rotation channel per joint (the IK of :func:`lsgan.export.bvh.joint_rotations`,
 as unit x,y,z,w quaternions) and a translation channel for the pelvis. glTF's conventions (right-handed, +Y
 up, +Z forward, metres) are lsgan's, so nothing is converted. :func:`skeleton_document` builds this file for
 any hierarchy: a user's rig (:func:`lsgan.export.retarget.rig_gltf_document`) gets the same nodes, skin, mesh and
@@ -33,6 +33,7 @@ JOINT_RADIUS = 0.02  # metres, the joint spheres
 BONE_RADIUS = 0.06  # bone capsule radius as a fraction of its length
 BONE_MAX_RADIUS = 0.015  # metres
 STUB_FRACTION = 0.5
+MIN_BONE_M = 1e-3  # shorter bones (character-creator twist and share bones) get no capsule: it would be degenerate
 FLOAT, UINT8, UINT16, UINT32 = 5126, 5121, 5123, 5125
 COMPONENT = {np.dtype(np.float32): FLOAT, np.dtype(np.uint8): UINT8, np.dtype(np.uint16): UINT16,
              np.dtype(np.uint32): UINT32}
@@ -63,7 +64,7 @@ def _bone_parts(targets: list[np.ndarray]) -> list:
     parts = [trimesh.creation.icosphere(subdivisions=1, radius=JOINT_RADIUS)]
     for target in targets:
         length = float(np.linalg.norm(target))
-        if length < 1e-6:
+        if length < MIN_BONE_M:
             continue
         radius = min(BONE_RADIUS * length, BONE_MAX_RADIUS)
         capsule = trimesh.creation.capsule(height=max(length - 2 * radius, 1e-4), radius=radius, count=[8, 8])

@@ -5,6 +5,7 @@ This is what ``lsgan export`` runs; notebooks can call :func:`export_motions` di
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -116,7 +117,7 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
 def _load_rig(rig: str | Path, joint_map: str | Path | None, preset: str | None, fmt: str):
     """(rig Bvh, JointMap) for ``--rig``, checked against each other before anything is written."""
     from lsgan.data.joint_maps import get_joint_map
-    from lsgan.export.retarget import load_rig, plan_rig
+    from lsgan.export.retarget import load_rig, map_warnings, plan_rig
 
     if fmt not in ("bvh", "glb"):
         raise ValueError(f"a rig is only used by the BVH and GLB exports (--bvh/--glb --rig), not --{fmt}")
@@ -125,6 +126,8 @@ def _load_rig(rig: str | Path, joint_map: str | Path | None, preset: str | None,
     skeleton = load_rig(rig)
     jmap = get_joint_map(preset or "", joint_map)
     plan_rig(skeleton, jmap)
+    for line in map_warnings(skeleton, jmap):
+        print(f"warning: {line}", file=sys.stderr)
     return skeleton, jmap
 
 

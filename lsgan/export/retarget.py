@@ -8,14 +8,23 @@ rig joints named directly are *mapped* (``between`` entries only place SMPL join
 
 - Root: the pelvis joint follows our pelvis trajectory scaled by the ratio of the rig's leg length (hip to
   knee to ankle at rest) to ours, through the position channels of the pelvis joint or of its nearest
-  ancestor with all three; the pelvis joint's ancestors keep their rest rotation.
+  ancestor with all three; the pelvis joint's ancestors keep their rest rotation. It is then raised or lowered
+  so that the rig's lowest foot joint is as high as ours in every frame where one of our feet is in contact
+  (:func:`lsgan.export.feet.estimate_contacts`), interpolated between them (:func:`floor_lift`): the rig stands
+  on our floor whatever its proportions and wherever its root joint sits.
 - Mapped joints, by IK on directions: the chain of rig joints from a mapped joint to the next mapped joint
   below it is turned so that it points along our bone between the two. A joint starting several chains (the
-  pelvis, the chest) gets the Kabsch rotation of its rest chain vectors onto ours; a joint starting one gets
-  the shortest arc, with the twist carried from frame to frame (:func:`lsgan.export.body._continue_twist`).
-  Unmapped joints inside a chain share the bend: the k-th of n turns 1/(n-k) of the remaining arc, so the
-  last one aims exactly.
+  pelvis, the chest) gets the Kabsch rotation of its rest chain vectors onto ours. The joint turning the last
+  link of a chain aims it along our bone and takes its twist from our body (:mod:`lsgan.export.aim`: knees and
+  elbows, and the hips and shoulders above them, from the limb's bend plane, or the body's forward when the limb
+  is straight; feet from the toes and the knee's hinge; the spine and neck from the hips and shoulders lines),
+  in the rig's own convention: the local axis that the rig's own mocap (its rest pose when the file has no
+  frames) turns towards that reference direction is turned towards ours (:func:`rig_axes`). So the twist is
+  the same whatever the rig's rest frames (pre-rotated bone frames of character-creator rigs included).
+  Unmapped joints earlier in a chain share the bend: the k-th of n turns 1/(n-k) of the remaining arc.
 - Everything else (fingers, end bones, mapped leaves such as the head or the hands) keeps its rest rotation.
+
+A map that would write a lying, wrongly sized or mirrored character is reported by :func:`map_warnings`.
 
 The BVH gets these rotations as Euler angles in each joint's channel order; the GLB (:func:`rig_gltf_document`)
 gets the same rotations as quaternions on the rig's hierarchy in metres, Y up (the map's scale, up axis and
@@ -29,16 +38,19 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lsgan.data.bvh import POSITION_CHANNELS, ROTATION_CHANNELS, Bvh, read_bvh
+from lsgan.data.bvh import (POSITION_CHANNELS, ROTATION_CHANNELS, Bvh, forward_kinematics, local_transforms,
+                            read_bvh)
 from lsgan.data.clip import ClipError
-from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices
+from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices, to_y_up
 from lsgan.data.skeleton import JOINT_NAMES
-from lsgan.export.body import _continue_twist as continue_twist
+from lsgan.export.aim import aim_frames, measure_axes, reference_directions
 from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text, kabsch, shortest_arc
 from lsgan.export.glb import bone_targets, pack_glb, skeleton_document, unit_quats
 from lsgan.io import atomic_file
 
 _LEGS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"))
+MIRRORED_FRACTION = 0.8  # frames seen mirrored: a mirrored map 1.0; real rigs' clips (Bandai, CMU) 0.0
+_FEET = [JOINT_NAMES.index(n) for n in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
 
 
 @dataclass(frozen=True)
@@ -51,6 +63,7 @@ class Plan:
     start_of: dict[int, int]  # mapped rig joint -> the mapped joint its chain starts from
     length: dict[int, float]  # mapped rig joint -> rest length of its chain (file units)
     aims: dict[int, list[tuple[int, np.ndarray, int]]]
+    axes: dict[int, np.ndarray]  # joint ending a one-chain aim -> its local axis facing the bone's reference
 
 
 def rig_frame(positions: np.ndarray, jmap: JointMap) -> np.ndarray:
@@ -61,6 +74,12 @@ def rig_frame(positions: np.ndarray, jmap: JointMap) -> np.ndarray:
     if jmap.up == "z":  # inverse of to_y_up's (x, y, z) -> (x, z, -y)
         p = np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)
     return p / jmap.scale
+
+
+def metres_y_up(positions: np.ndarray, jmap: JointMap) -> np.ndarray:
+    """The rig's positions (...,3) -> our metres, Y up, right-handed (the inverse of :func:`rig_frame`)."""
+    p = to_y_up(np.asarray(positions, dtype=np.float64) * jmap.scale, jmap.up)
+    return p * np.array([-1.0, 1.0, 1.0]) if jmap.handedness == "left" else p
 
 
 def rest_positions(parents: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -122,23 +141,52 @@ def plan_rig(rig: Bvh, jmap: JointMap) -> Plan:
         if sum(ch in ROTATION_CHANNELS for ch in rig.channels[c]) != 3:
             raise ClipError(f"{rig.path}: joint {rig.names[c]!r} needs three rotation channels to follow the motion, "
                             f"has {' '.join(rig.channels[c]) or 'none'}")
-    return Plan(pelvis, carrier, smpl_of, start_of, length, aims)
+    return Plan(pelvis, carrier, smpl_of, start_of, length, aims, rig_axes(rig, jmap, smpl_of, aims))
 
 
-def _local_rotation(aims, goals: list[np.ndarray]) -> np.ndarray:
-    """Local rotations (T,3,3) of one joint turning its rest chain vectors onto ``goals`` (parent frame)."""
+def global_rotations(parents: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """Global rotations (F,J,3,3) of local ones (F,J,3,3), parents listed first."""
+    out = np.empty_like(local)
+    for k, parent in enumerate(parents):
+        out[:, k] = local[:, k] if parent < 0 else out[:, parent] @ local[:, k]
+    return out
+
+
+def rig_axes(rig: Bvh, jmap: JointMap, smpl_of: dict, aims: dict) -> dict[int, np.ndarray]:
+    """The rig's own twist convention: for each joint turning the last link of a chain (see :class:`Plan`), the
+    local axis that the rig's mocap (its rest pose when the file has no frames) turns towards the reference
+    direction of the SMPL bone it drives (:func:`lsgan.export.aim.measure_axes`)."""
+    twisted = [(c, smpl_of[a[0][0]], a[0][1]) for c, a in aims.items() if len(a) == 1 and a[0][2] == 1]
+    if not twisted:
+        return {}
+    if rig.num_frames:
+        rotations, _ = local_transforms(rig)
+        rot, pos = global_rotations(rig.parents, rotations), forward_kinematics(rig)
+    else:
+        rot, pos = np.eye(3)[None, None].repeat(len(rig.names), 1), rest_positions(rig.parents, rig.offsets)[None]
+    refs = rig_frame(reference_directions(apply_joint_map(pos, rig.names, jmap, rig.path)), jmap)
+    joints, ends, rest = zip(*twisted)
+    axes = measure_axes(rot[:, list(joints)], np.array(rest), refs[:, list(ends)])
+    return dict(zip(joints, axes))
+
+
+def _local_rotation(aims, goals: list[np.ndarray], axis: np.ndarray | None, ref: np.ndarray) -> np.ndarray:
+    """Local rotations (T,3,3) of one joint turning its rest chain vectors onto ``goals`` (parent frame): several
+    at once by Kabsch; the last link of a chain with its ``axis`` towards ``ref``; an earlier one a share of the
+    arc."""
     if len(aims) > 1:
         return kabsch(np.stack([r for _, r, _ in aims]), np.stack(goals, axis=1))
     _, rest, left = aims[0]
-    swing = shortest_arc(rest, goals[0])
     if left == 1:
-        return continue_twist(swing, goals[0])
+        return aim_frames(rest, axis, goals[0], ref)
+    swing = shortest_arc(rest, goals[0])
     return Rotation.from_rotvec(Rotation.from_matrix(swing).as_rotvec() / left).as_matrix()
 
 
-def solve(q: np.ndarray, root: np.ndarray, rig: Bvh, plan: Plan) -> tuple[np.ndarray, np.ndarray]:
-    """Local rotations (T,J,3,3) and translations (T,J,3) posing ``rig`` like targets ``q`` (T,22,3, rig frame)
-    with the pelvis joint at ``root`` (T,3)."""
+def solve(q: np.ndarray, refs: np.ndarray, root: np.ndarray, rig: Bvh,
+          plan: Plan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local rotations (T,J,3,3), translations (T,J,3) and positions (T,J,3) posing ``rig`` like targets ``q``
+    (T,22,3, rig frame; ``refs`` their bones' reference directions) with the pelvis joint at ``root`` (T,3)."""
     t, n = len(q), len(rig.names)
     eye = np.broadcast_to(np.eye(3), (t, 3, 3))
     trans = np.broadcast_to(rig.offsets, (t, n, 3)).copy()
@@ -155,20 +203,51 @@ def solve(q: np.ndarray, root: np.ndarray, rig: Bvh, plan: Plan) -> tuple[np.nda
             bone = bone / np.maximum(np.linalg.norm(bone, axis=-1, keepdims=True), 1e-12)
             goal = pos[:, start] + bone * plan.length[m] - pos[:, k]
             goals.append(np.einsum("tji,tj->ti", parent_rot, goal))
-        local[:, k] = _local_rotation(aims, goals) if aims else eye
+        if aims:
+            ref = np.einsum("tji,tj->ti", parent_rot, refs[:, plan.smpl_of[aims[0][0]]])
+            local[:, k] = _local_rotation(aims, goals, plan.axes.get(k), ref)
+        else:
+            local[:, k] = eye
         global_rot[:, k] = parent_rot @ local[:, k]
-    return local, trans
+    return local, trans, pos
+
+
+def foot_joints(rig: Bvh, jmap: JointMap) -> list[int]:
+    """The rig joints the map reads for our ankles and toes, and every joint below them."""
+    a, b, _ = map_indices(jmap, rig.names, rig.path)
+    feet = {int(x) for x in np.concatenate([a[_FEET], b[_FEET]])}
+    for k, parent in enumerate(rig.parents):
+        if parent in feet:
+            feet.add(k)
+    return sorted(feet)
+
+
+def floor_lift(j: np.ndarray, feet: np.ndarray) -> np.ndarray:
+    """Heights (T,) to raise the rig by so that its lowest foot joint, ``feet`` (T,F,3: our frame, metres), is as
+    high as our lowest foot joint in every frame where one of ours is in contact (estimated from ``j`` (T,22,3)),
+    interpolated between those frames (the median difference throughout when ours never touches down)."""
+    from lsgan.export.feet import estimate_contacts
+
+    gap = j[:, _FEET, 1].min(axis=1) - feet[..., 1].min(axis=1)
+    contact = np.flatnonzero(estimate_contacts(j.astype(np.float32)).any(axis=1))
+    if not len(contact):
+        return np.full(len(j), float(np.median(gap)))
+    return np.interp(np.arange(len(j)), contact, gap[contact])
 
 
 def _solved(j: np.ndarray, rig: Bvh, jmap: JointMap) -> tuple[Plan, np.ndarray, np.ndarray]:
-    """The plan and :func:`solve`'s local rotations and translations (rig frame) for a checked motion ``j``."""
+    """The plan and :func:`solve`'s local rotations and translations (rig frame) for a checked motion ``j``, the
+    root raised or lowered to put the rig's feet on our floor (:func:`floor_lift`)."""
     plan = plan_rig(rig, jmap)
     rest = apply_joint_map(rest_positions(rig.parents, rig.offsets)[None], rig.names, jmap, rig.path)
     ours = leg_length(j)
     if not ours > 1e-6:
         raise ValueError("the motion's legs have zero length")
     scale = leg_length(rest) / ours
-    local, trans = solve(rig_frame(j, jmap), rig_frame(j[:, 0] * scale, jmap), rig, plan)
+    refs = rig_frame(reference_directions(j), jmap)
+    local, trans, pos = solve(rig_frame(j, jmap), refs, rig_frame(j[:, 0] * scale, jmap), rig, plan)
+    lift = floor_lift(j, metres_y_up(pos[:, foot_joints(rig, jmap)], jmap))
+    trans[:, plan.carrier] += rig_frame(lift[:, None] * np.array([0.0, 1.0, 0.0]), jmap)
     return plan, local, trans
 
 
@@ -202,6 +281,36 @@ def rig_gltf_document(joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: floa
     return skeleton_document(rig.names, rig.parents, rest, quat, {plan.carrier: root},
                              bone_targets(rig.parents, rest, ends, moving={plan.carrier}), rest_quat=identity,
                              fps=fps, name=name, extras=extras)
+
+
+def mirrored_fraction(j: np.ndarray) -> float:
+    """Fraction of frames of joints (T,22,3) whose left hip lies on the body's right, the body facing where its
+    toes point and its knees bend (level part): 0 for a person, 1 for a mirrored one (a wrong handedness)."""
+    hip, knee, ankle = ([JOINT_NAMES.index(n) for n in leg] for leg in zip(*_LEGS))
+    knees = j[:, knee] - (j[:, hip] + j[:, ankle]) / 2
+    forward = (j[:, _FEET[2:]] - j[:, _FEET[:2]] + knees).sum(axis=1) * np.array([1.0, 0.0, 1.0])
+    left = np.cross(np.array([0.0, 1.0, 0.0]), forward)
+    hips = j[:, JOINT_NAMES.index("left_hip")] - j[:, JOINT_NAMES.index("right_hip")]
+    return float(np.mean(np.einsum("ti,ti->t", hips, left) < 0))
+
+
+def map_warnings(rig: Bvh, jmap: JointMap) -> list[str]:
+    """Warnings (empty: plausible) for a joint map that would write a lying, giant or tiny, or mirrored character
+    onto ``rig``: the rig's own frames (its rest pose if it has none) read through the map, checked as imports are
+    (:mod:`lsgan.data.plausibility`: size, up axis) and for mirroring, each naming the map and the likely cause."""
+    from lsgan.data.plausibility import clip_checks, findings
+
+    pos = forward_kinematics(rig) if rig.num_frames else rest_positions(rig.parents, rig.offsets)[None]
+    j = apply_joint_map(pos, rig.names, jmap, rig.path)
+    where = f"{rig.path}: joint map {jmap.name!r}"
+    found = [(kind, text) for kind, text in findings(clip_checks(j)) if kind in ("scale", "up")]
+    out = [f"{where} would write a {'lying' if kind == 'up' else 'wrongly sized'} character: {text}"
+           for kind, text in found]
+    mirrored = mirrored_fraction(j)
+    if not found and mirrored >= MIRRORED_FRACTION:
+        out.append(f"{where} would write a mirrored character: the left hip is on the body's right in "
+                   f"{100 * mirrored:.0f}% of the rig's frames: wrong `handedness` in the joint map?")
+    return out
 
 
 def rig_bvh_text(bvh: Bvh) -> str:

@@ -3,7 +3,8 @@
 Two backends: :class:`TorchEngine` (a GAN and its VAE, the pass of :func:`lsgan.generate.run_models`) and
 :class:`OnnxEngine` (an ``export-model`` folder, :class:`lsgan.deploy.runtime.OnnxMotionModel`). Each item of a
 pass draws its noise from its own seed exactly as ``lsgan generate --seed SEED --num NUM`` draws it for that one
-request (torch's generator, or numpy's for ONNX), so a motion does not depend on what it was batched with.
+request (:func:`lsgan.generation.draw_noise`, the same in both backends), so a motion does not depend on what it was
+batched with; its joints are made rigid as ``generate``'s are (:func:`lsgan.generation.decoded_motion`).
 """
 from __future__ import annotations
 
@@ -13,9 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS
-from lsgan.generation import Request
+from lsgan.generation import Request, decoded_motion, draw_noise
 
 
 @dataclass(frozen=True)
@@ -112,17 +112,18 @@ class TorchEngine(Engine):
     def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
         import torch
 
-        from lsgan.generate import draw_noise, noise_dim, run_models
+        from lsgan.generate import noise_dim, run_models
         from lsgan.threads import ThreadPolicy
 
         dim = noise_dim(self.loaded.model, self.loaded.meta)
-        noise = torch.cat([draw_noise(it.seed, it.num, dim)[0] for it in items])
+        noise = torch.from_numpy(np.concatenate([draw_noise(it.seed, it.num, dim) for it in items]))
         policy = self.threads
         if threads is not None and self.loaded.device.type == "cpu":
             policy = self._fixed.setdefault(threads, ThreadPolicy(threads=threads))
         feats, timings, _ = run_models(self.loaded, [it.request for it in items], [it.num for it in items], noise,
                                        batch_size=self.batch_size, threads=policy)
-        return _results(items, [recover_from_ric(f.astype(np.float32)) for f in feats], timings)
+        requests = [it.request for it in items for _ in range(it.num)]
+        return _results(items, [decoded_motion(r, 0, f).joints for r, f in zip(requests, feats)], timings)
 
 
 class OnnxEngine(Engine):
@@ -142,8 +143,6 @@ class OnnxEngine(Engine):
 
     def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
         """``threads`` is ignored: onnxruntime fixes a session's threads when it is made (``load_engine``)."""
-        from lsgan.deploy.runtime import draw_noise
-
         dim = int(self.model.manifest["noise_dim"])
         noise = np.concatenate([draw_noise(it.seed, it.num, dim) for it in items])
         requests = [it.request for it in items for _ in range(it.num)]  # one row of noise each, in order
