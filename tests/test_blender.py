@@ -1,10 +1,11 @@
 """Blender imports our BVH and GLB at their own length and speed with the settings ``lsgan export`` prints.
 
 Runs Blender as a Python module (``pip install bpy`` in a separate virtual environment; CI does) named by
-LSGAN_BLENDER_PYTHON; skips with that instruction otherwise. A 300-frame motion (longer than Blender's default
-250-frame scene) is exported at 20 and 30 fps; Blender imports each file fresh, once with its defaults (to show
-what goes wrong: the test asserts it does) and once with the printed settings, and reports the scene rate, frame
-range and the imported action's key range.
+LSGAN_BLENDER_PYTHON; skips with that instruction otherwise. Motions of 131 and 300 frames (shorter and longer
+than Blender's default 250-frame scene) are exported at 20 and 30 fps; Blender imports each file fresh, once with
+its defaults (to show what goes wrong: the test asserts it does) and once with the printed settings (the BVH with
+both 'Update Scene' boxes ticked, then the printed frame range), plays the scene's range and reports the scene rate,
+frame range, the imported action's key range and the root bone's place on the first and last frame played.
 """
 from __future__ import annotations
 
@@ -40,11 +41,19 @@ for mode in ("defaults", "settings"):
         if mode == "settings":
             scene.render.fps, scene.render.fps_base = settings["fps"], settings["fps_base"]
         bpy.ops.import_scene.gltf(filepath=path)
-        if mode == "settings":
-            scene.frame_start, scene.frame_end = settings["frame_start"], settings["frame_end"]
+    if mode == "settings":
+        scene.frame_start, scene.frame_end = settings["frame_start"], settings["frame_end"]
     keys = [tuple(a.frame_range) for a in bpy.data.actions]
+    arm = [o for o in scene.objects if o.type == "ARMATURE"][0]
+    root = [b for b in arm.pose.bones if b.parent is None][0]
+    played = {}
+    for f in range(scene.frame_start, scene.frame_end + 1):  # play the scene's range
+        scene.frame_set(f)
+        if f in (scene.frame_start, scene.frame_end):
+            played[str(f)] = list(arm.matrix_world @ root.head)
     out[mode] = {"rate": scene.render.fps / scene.render.fps_base, "start": scene.frame_start,
-                 "end": scene.frame_end, "keys": [min(k[0] for k in keys), max(k[1] for k in keys)]}
+                 "end": scene.frame_end, "keys": [min(k[0] for k in keys), max(k[1] for k in keys)],
+                 "root": [played[str(scene.frame_start)], played[str(scene.frame_end)]]}
 print("REPORT" + json.dumps(out))
 """
 
@@ -58,8 +67,8 @@ def _report(script: str, *args) -> dict:
     return json.loads(line[0][len("REPORT"):])
 
 
-def _blender(fmt: str, path: Path, fps: float) -> dict:
-    return _report(SCRIPT, fmt, path, json.dumps(scene_settings(fmt, fps, FRAMES).__dict__))
+def _blender(fmt: str, path: Path, fps: float, frames: int = FRAMES) -> dict:
+    return _report(SCRIPT, fmt, path, json.dumps(scene_settings(fmt, fps, frames).__dict__))
 
 
 @pytest.fixture(scope="module")
@@ -73,26 +82,53 @@ def motion(tmp_path_factory) -> Path:
 
 @pytest.mark.parametrize("fmt", ["bvh", "glb"])
 @pytest.mark.parametrize("fps", [20.0, 30.0])
-def test_blender_plays_the_whole_motion_at_its_speed(motion, tmp_path, fmt, fps):
+@pytest.mark.parametrize("frames", [131, FRAMES])
+def test_blender_plays_the_whole_motion_at_its_speed(motion, tmp_path, fmt, fps, frames):
+    joints = np.load(motion)[:frames]
+    np.save(tmp_path / "m_joints.npy", joints)
     exported = tmp_path / f"m.{fmt}"
-    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", f"--{fmt}", str(motion), "--fps", str(fps),
-                          "-o", str(exported)], capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", f"--{fmt}", str(tmp_path / "m_joints.npy"),
+                          "--fps", str(fps), "-o", str(exported)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    assert "Blender:" in run.stderr and f"{round(fps)} fps" in run.stderr  # the printed advice
-    report = _blender(fmt, exported, fps)
-    seconds = FRAMES / fps
+    wanted = scene_settings(fmt, fps, frames)
+    assert "Blender:" in run.stderr and f"{round(fps)} fps" in run.stderr  # the printed advice, with the range
+    assert f"Start {wanted.frame_start}, End {wanted.frame_end}" in run.stderr
+    report = _blender(fmt, exported, fps, frames)
     good = report["settings"]
     assert good["rate"] == pytest.approx(fps)
-    assert good["keys"][1] - good["keys"][0] == pytest.approx(FRAMES - 1, abs=1e-3)  # one key per frame
-    assert good["start"] <= good["keys"][0] and good["end"] >= good["keys"][1]  # nothing cut
-    assert (good["keys"][1] - good["keys"][0] + 1) / good["rate"] == pytest.approx(seconds, abs=1e-3)
-    bad = report["defaults"]  # without them: a 24 fps scene of frames 1-250
-    assert bad["rate"] == 24 and bad["end"] == 250
+    assert [good["start"], good["end"]] == pytest.approx(good["keys"], abs=1e-3)  # the scene is the animation
+    assert good["end"] - good["start"] + 1 == frames and (fmt != "bvh" or good["end"] == frames)
+    assert (good["end"] - good["start"] + 1) / good["rate"] == pytest.approx(frames / fps, abs=1e-3)  # seconds
+    for place, frame in zip(good["root"], (0, -1)):  # the first and last frame played are the motion's
+        x, y, z = joints[frame, 0]
+        assert place == pytest.approx([x, -z, y], abs=1e-3)
+    bad = report["defaults"]  # without them: a 24 fps scene of frames 1-250, whatever the motion's length
+    assert bad["rate"] == 24 and [bad["start"], bad["end"]] == [1, 250]
     if fmt == "bvh":  # one key per frame whatever the scene's rate: too fast at 20 fps, and cut at frame 250
-        assert bad["keys"][1] == pytest.approx(FRAMES)
+        assert bad["keys"][1] == pytest.approx(frames)
     else:  # keys in seconds: the speed is kept, the motion is cut once it is longer than 250 / 24 s
-        assert bad["keys"][1] == pytest.approx((FRAMES - 1) / fps * 24, abs=1e-3)
-        assert (bad["keys"][1] > 250) == (seconds > 250 / 24)
+        assert bad["keys"][1] == pytest.approx((frames - 1) / fps * 24, abs=1e-3)
+
+
+def test_update_scene_duration_never_shortens(motion, tmp_path):
+    """Why the printed settings name the end frame: a 131-frame BVH imported with both 'Update Scene' boxes ticked
+    and no more still plays over frames 1-250."""
+    np.save(tmp_path / "m_joints.npy", np.load(motion)[:131])
+    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", "--bvh", str(tmp_path / "m_joints.npy"),
+                          "-o", str(tmp_path / "m.bvh")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    report = _report(UPDATE_ONLY, tmp_path / "m.bvh")
+    assert report["rate"] == 20 and report["end"] == 250 and report["keys"] == [1, 131]
+
+
+UPDATE_ONLY = r"""
+import json, sys, bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_anim.bvh(filepath=sys.argv[-1], global_scale=0.01, update_scene_fps=True, update_scene_duration=True)
+scene = bpy.context.scene
+print("REPORT" + json.dumps({"rate": scene.render.fps / scene.render.fps_base, "end": scene.frame_end,
+                             "keys": list(bpy.data.actions[0].frame_range)}))
+"""
 
 
 ARMATURE_SCRIPT = r"""
@@ -232,7 +268,7 @@ def test_blender_imports_the_body_glb_and_deforms_it_like_lsgan(motion, body_mod
                           str(body_models), "--model-type", model_type, "-o", str(path)],
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    assert "Blender:" in run.stderr and "20 fps" in run.stderr and f"0-{FRAMES - 1}" in run.stderr  # the advice
+    assert "Blender:" in run.stderr and "20 fps" in run.stderr and f"Start 0, End {FRAMES - 1}" in run.stderr  # advice
     model = read_body_model(body_models, model_type=model_type)
     doc, blob = parse(path.read_bytes())
     names = node_index(doc)

@@ -6,11 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_runs import lsgan, tiny_pipeline
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from lsgan.data.features import joints_to_features, recover_from_ric
 from lsgan.data.sources.bvh import BvhSource
+from lsgan.data.synthetic import _assemble, _finish, _gait_pose
 from lsgan.data.synthetic import generate as synthetic_clips
-from lsgan.eval.quality import foot_skating_ratio
+from lsgan.eval.quality import foot_pops, foot_skating_ratio, toe_above
 from lsgan.export.bvh import load_motion_joints
 from lsgan.export.feet import (
     CHANNEL_JOINTS,
@@ -99,8 +102,9 @@ def test_locks_sliding_feet() -> None:
 
 
 def test_gliding_feet_plant_and_step() -> None:
-    """A body gliding at 3 and 5 cm/frame: the feet stay still on most contact frames and catch up by steps that
-    lift the toe, not by sliding along the floor."""
+    """A body gliding at 3 and 5 cm/frame: the feet slide much less and catch up by steps that lift the toe, not by
+    sliding along the floor; where the original's own fastest foot move leaves room for steps (no foot may move
+    faster than it plus 2 cm), they stay still on most contact frames."""
     before = after = 0.0
     for drift in (0.03, 0.05):
         for joints, features in sliding_motions(6, drift):
@@ -108,7 +112,9 @@ def test_gliding_feet_plant_and_step() -> None:
             fixed = fix_feet(joints, contacts)
             check_fixed(joints, fixed, contacts)
             (slid, still_before), (slid_after, still) = floor_travel(joints, contacts), floor_travel(fixed, contacts)
-            assert slid_after < 0.5 * slid and still > still_before + 0.3
+            assert slid_after < 0.5 * slid
+            room = np.linalg.norm(np.diff(joints[:, list(CHANNEL_JOINTS)], axis=0), axis=-1).max() + 0.02
+            assert still > still_before + 0.3 or room < 2 * drift, (drift, still, room)
             before, after = before + slid, after + slid_after
             spans = held_spans(joints, contacts)
             for toe, held in ((10, spans[1]), (11, spans[3])):  # each step between two plants lifts the toe
@@ -116,21 +122,22 @@ def test_gliding_feet_plant_and_step() -> None:
                     length = np.linalg.norm(fixed[b, toe, [0, 2]] - fixed[a, toe, [0, 2]])
                     lift = fixed[a + 1: b, toe, 1].max() - max(fixed[a, toe, 1], fixed[b, toe, 1])
                     assert length < 0.1 or lift > 0.3 * TOE_LIFT * length, (toe, a, b, length, lift)
-    assert after < 0.15 * before
+    assert after < 0.2 * before  # 0.15 before the speed limit: a standing body gliding has little room to step
 
 
 def test_feet_take_turns() -> None:
-    """Both feet marked in contact all along while the body glides: they step in turn (a walk, not a hop)."""
-    joints, features = sliding_motions(6, 0.05)[5]
+    """A walking turn whose body glides 3 cm/frame, its feet marked in contact 70% of the time: each foot plants
+    and steps, in turn (a walk, not a hop: both are off their plants on few frames)."""
+    joints, features = sliding_motions(6, 0.03)[3]
     contacts = contacts_from_features(features)
-    assert stance_frames(joints, contacts).all()
+    assert stance_frames(joints, contacts).mean() > 0.6
     spans = held_spans(joints, contacts)
     held = np.zeros((len(joints), 2), dtype=bool)
     for side, toe_spans in enumerate((spans[1], spans[3])):
-        assert len(toe_spans) >= 3  # each foot steps
+        assert len(toe_spans) >= 4  # each foot steps
         for a, b in toe_spans:
             held[a: b + 1, side] = True
-    assert (~held.any(axis=1)).mean() < 0.1
+    assert (~held.any(axis=1)).mean() < 0.15
 
 
 @pytest.mark.parametrize("clip", ["dataset-2_walk_normal_001", "dataset-2_walk-turn-left_normal_001"])
@@ -146,6 +153,80 @@ def test_real_bandai_walk(bandai_dir, clip: str) -> None:
     assert np.linalg.norm(fixed[:, list(LEG_JOINTS)] - joints[:, list(LEG_JOINTS)], axis=-1).mean() < 0.02
     assert foot_skating_ratio(fixed) < foot_skating_ratio(joints) + 0.03
     assert floor_travel(fixed, contacts)[0] < 0.5 * floor_travel(joints, contacts)[0]
+
+
+def gait(seed: int, kind: str, direction: str, speed: str, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """A synthetic walk or run (a fast forward run is a sprint, 3.5-4.2 m/s) through the features, as a generated
+    motion comes: recovered joints and the features."""
+    clip = _finish(_assemble(_gait_pose(np.random.default_rng(seed), frames, kind, direction, speed)))
+    features = joints_to_features(clip)
+    return recover_from_ric(features.astype(np.float64)).astype(np.float32), features
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), kind=st.sampled_from(["walk", "run"]),
+       direction=st.sampled_from(["forward", "backward", "left", "right"]),
+       speed=st.sampled_from(["slow", "normal", "fast"]), frames=st.integers(40, 120),
+       glide=st.floats(0.0, 0.12), heading=st.floats(0.0, 2 * np.pi), noise=st.floats(0.0, 0.01),
+       marks=st.sampled_from(["features", "all", "random"]))
+def test_no_foot_pops(seed, kind, direction, speed, frames, glide, heading, noise, marks) -> None:
+    """Walks, runs and sprints made to glide (up to 12 cm/frame: 2.4 m/s on top of the gait), jitter and carry
+    wrong contact marks: no ankle or toe of the fixed motion moves more in a frame than the original foot's
+    fastest move plus 2 cm, and the module's other promises hold."""
+    joints, features = gait(seed, kind, direction, speed, frames)
+    rng = np.random.default_rng(seed)
+    frames = len(joints)  # the features have one frame fewer than the clip
+    shift = np.arange(frames)[:, None] * glide * np.array([np.cos(heading), 0.0, np.sin(heading)])
+    joints = (joints + shift[:, None] + rng.normal(0.0, noise, joints.shape)).astype(np.float32)
+    contacts = {"features": contacts_from_features(features), "all": np.ones((frames, 4), dtype=bool),
+                "random": rng.random((frames, 4)) < 0.8}[marks]
+    fixed = fix_feet(joints, contacts)
+    assert foot_pops(joints, fixed) == 0
+    check_fixed(joints, fixed, contacts)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), kind=st.sampled_from(["walk", "run"]),
+       direction=st.sampled_from(["forward", "backward", "left", "right"]),
+       speed=st.sampled_from(["slow", "normal", "fast"]), frames=st.integers(40, 120))
+def test_clean_feet_stay_clean(seed, kind, direction, speed, frames) -> None:
+    """A walk or run whose feet are planted already (synthetic: no slide) comes back nearly as it was: leg joints
+    within 3 mm on average, GMD's ratio no higher, no pop."""
+    joints, features = gait(seed, kind, direction, speed, frames)
+    fixed = fix_feet(joints, contacts_from_features(features))
+    change = np.linalg.norm(fixed[:, list(LEG_JOINTS)] - joints[:, list(LEG_JOINTS)], axis=-1)
+    assert change.mean() < 0.003, change.mean()
+    assert foot_skating_ratio(fixed) <= foot_skating_ratio(joints) + 1e-9
+    assert foot_pops(joints, fixed) == 0
+
+
+@pytest.mark.parametrize("kind,speed", [("walk", "fast"), ("run", "normal"), ("run", "fast")])
+def test_sprints_planted_throughout(kind: str, speed: str) -> None:
+    """A gait gliding on at 10 cm/frame (3.6-5.9 m/s in all), feet marked in contact all along: the feet are
+    planted after the first second too (the toes held on a quarter of those frames or more) and skate less there."""
+    joints, _ = gait(1, kind, "forward", speed, 121)
+    joints = joints + (np.arange(120)[:, None] * np.float32([0.0, 0.0, 0.1]))[:, None]
+    contacts = np.ones((120, 4), dtype=bool)
+    fixed = fix_feet(joints, contacts)
+    spans = held_spans(joints, contacts)
+    later = sum(b - max(a, 20) + 1 for toe in (spans[1], spans[3]) for a, b in toe if b >= 20)
+    assert later >= 0.25 * 100, later
+    assert foot_skating_ratio(fixed[20:]) < 0.8 * foot_skating_ratio(joints[20:])
+    assert foot_pops(joints, fixed) == 0
+
+
+def test_foot_pops_and_toe_above() -> None:
+    """The two figures the fix is measured by: an 8 cm snap of one toe over a motion whose feet move at most 2 cm a
+    frame is one pop (two frame pairs: out and back); one toe lifted on half the frames is a quarter of toe-frames."""
+    joints = np.zeros((10, 22, 3))
+    joints[:, [7, 10, 8, 11], 0] = np.arange(10)[:, None] * 0.02
+    snapped = joints.copy()
+    snapped[5, 10, 0] += 0.08
+    assert foot_pops(joints, joints) == 0 and foot_pops(joints, snapped) == 2
+    assert foot_pops(np.stack([joints, joints]), np.stack([joints, snapped])).tolist() == [0, 2]
+    lifted = joints.copy()
+    lifted[:5, 11, 1] = 0.06
+    assert toe_above(lifted) == 0.25
 
 
 def test_estimated_contacts_and_no_contact() -> None:

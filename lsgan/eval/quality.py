@@ -37,6 +37,8 @@ FEET = [10, 11]  # left_foot, right_foot (toe joints): GMD's foot joints
 CONTACT_HEIGHT = 0.05  # m: a foot under this height is on the ground (GMD)
 SKATE_SPEED = 0.5  # m/s: 2.5 cm per frame at 20 fps (GMD)
 SKATE_WINDOW = 5  # frames: GMD's moving average of the foot speed
+POP_JOINTS = [7, 10, 8, 11]  # left ankle, left foot, right ankle, right foot: a foot's joints, side by side
+POP_SLACK = 0.02  # m: a foot joint moving this much faster than the foot's fastest move in the original pops
 
 
 def _check(joints: np.ndarray, min_frames: int) -> np.ndarray:
@@ -93,6 +95,24 @@ def jerk(joints: np.ndarray, fps: float = FPS) -> np.ndarray:
     frames, in m/s^3 (third finite difference times fps^3). Jitter shows up as high jerk. (...,)"""
     d3 = np.diff(_check(joints, 4), n=3, axis=-3) * float(fps) ** 3  # (..., T-3, J, 3)
     return np.linalg.norm(d3, axis=-1).mean(axis=(-2, -1))
+
+
+def foot_pops(before: np.ndarray, after: np.ndarray, slack: float = POP_SLACK) -> np.ndarray:
+    """Frame-to-frame moves of the ankles and toes (7, 10, 8, 11) in ``after`` longer than the fastest move of the
+    same foot (its ankle or toe) in ``before`` plus ``slack`` metres: the snaps an edit (a foot clean-up) adds,
+    counted per motion. (...,)"""
+    moves = [np.linalg.norm(np.diff(_check(x, 2)[..., POP_JOINTS, :], axis=-3), axis=-1) for x in (before, after)]
+    if moves[0].shape != moves[1].shape:
+        raise ValueError(f"before and after must have the same shape, got {before.shape} and {after.shape}")
+    feet = [moves[0][..., 2 * s: 2 * s + 2].max(axis=(-2, -1), keepdims=True) for s in range(2)]
+    limit = np.repeat(np.concatenate(feet, axis=-1), 2, axis=-1) + slack  # (..., 1, 4)
+    return (moves[1] > limit).sum(axis=(-2, -1))
+
+
+def toe_above(joints: np.ndarray, height: float = CONTACT_HEIGHT) -> np.ndarray:
+    """Share of toe-frames (each of the toes 10 and 11 on each frame) higher than ``height`` above the floor:
+    how much of the time the feet are lifted. (...,)"""
+    return (_check(joints, 1)[..., FEET, 1] > height).mean(axis=(-2, -1))
 
 
 def quality_metrics(joints_list: Sequence[np.ndarray], fps: float = FPS) -> dict[str, float]:

@@ -1,10 +1,11 @@
 """The Blender scene settings that play an exported motion at its own length and speed.
 
 Blender's importers leave the scene at its defaults, 24 fps and frames 1-250, unless told otherwise (measured
-with Blender 5.0, ``pip install bpy``): a 20 fps BVH then plays 1.2x too fast and stops at frame 250 (unless
-the importer's "Update Scene FPS" and "Update Scene Duration" are ticked), and a GLB keeps its speed (glTF keys
-are in seconds) but stops at frame 250. The settings below are what ``lsgan export`` prints and
-``tests/test_blender.py`` applies in Blender.
+with Blender 5.0, ``pip install bpy``): a 20 fps BVH then plays 1.2x too fast (unless the importer's "Update
+Scene FPS" is ticked) over frames 1-250, and a GLB keeps its speed (glTF keys are in seconds) over frames 1-250.
+The BVH importer's "Update Scene Duration" only lengthens the scene, never shortens it: a 131-frame BVH still
+plays 250 frames, so the scene's end frame has to be set to the motion's length by hand, for BVH and GLB alike.
+The settings below are what ``lsgan export`` prints and ``tests/test_blender.py`` applies in Blender.
 """
 from __future__ import annotations
 
@@ -34,9 +35,11 @@ def blender_hint(fmt: str, fps: float, frames: int, scale: float = 0.01) -> str:
     BVH's metres per unit, 0.01 for ours in centimetres, a rig's own otherwise)."""
     s = scene_settings(fmt, fps, frames)
     rate = f"{s.fps} fps" + ("" if s.fps_base == 1 else f" / base {s.fps_base:.4f}")
+    scene = (f"Output > Frame Range: Start {s.frame_start}, End {s.frame_end} "
+             f"(scene.frame_start, scene.frame_end = {s.frame_start}, {s.frame_end})")
     if fmt == "bvh":
-        return (f"Blender: File > Import > Motion Capture (.bvh) with Scale {scale:g} and both 'Update Scene FPS' and "
-                f"'Update Scene Duration' ticked (or set the scene to {rate}, frames {s.frame_start}-{s.frame_end}); "
-                "otherwise it plays at 24 fps and stops at frame 250")
-    return (f"Blender: set Output > Frame Rate to {rate} before File > Import > glTF 2.0, then the frame range to "
-            f"{s.frame_start}-{s.frame_end}; otherwise it stops at frame 250")
+        return (f"Blender: File > Import > Motion Capture (.bvh) with Scale {scale:g} and 'Update Scene FPS' ticked "
+                f"(or Output > Frame Rate {rate}), then {scene}: 'Update Scene Duration' never shortens the "
+                "250-frame default; otherwise it plays at 24 fps over frames 1-250")
+    return (f"Blender: set Output > Frame Rate to {rate} before File > Import > glTF 2.0, then {scene}; "
+            "otherwise it plays over frames 1-250")

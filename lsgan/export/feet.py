@@ -9,31 +9,38 @@ t+1 (:func:`lsgan.data.features.foot_contacts`), so frames t and t+1 are both in
 (:func:`frame_contacts`). :func:`contacts_from_features` reads a generated motion's own channels (> 0.5);
 :func:`estimate_contacts` applies the same rule to the joints themselves. A side is in stance on a frame where
 its ankle or toe channel says contact, that joint is within ``CONTACT_HEIGHT`` (5 cm, GMD's rule) of its lowest
-height in the clip (a foot held still in the air is no contact) and the toe moves less than ``STANCE_SPEED``;
-gaps of up to ``GAP_FRAMES`` frames are bridged.
+height in the clip (a foot held still in the air is no contact) and the toe moves less than ``STANCE_SPEED``
+or, in a run or sprint, less than ``STANCE_RATIO`` times the root (a foot gliding along with the body is in
+contact, one swinging past it is not); gaps of up to ``GAP_FRAMES`` frames are bridged.
 
-Plants and steps (per side, planned over the whole clip). A stance run starts with a plant where the toe
-comes down and to rest within ``ENTRY_FRAMES`` (the foot eases onto it), lifted onto the floor. A plant holds
-the toe on its anchor and the ankle on its anchor at the frame's foot length; the heel turns up about the toe
-(push-off) as far as the original's does where its ankle is off the ground, and as far as the leg needs to stay
-within ``REACH`` of its stretched length. A generated body often glides on while its
-feet are marked in contact; when the plant cannot hold any longer (the leg needs the heel up more than
-``MAX_HEEL``, or the toe is ``MAX_OFFSET`` from the original's), the foot steps: it lands
-:func:`swing_frames` later on a new anchor, the original foot's place up to ``LEAD_FRAMES`` ahead, chosen so
-that the next plant holds longest. The right foot is planned after the left and ends each plant, where it can,
-so that its step does not overlap the left foot's (a walk, not a hop). A plant also lets go where the original
-toe rises ``LIFT_OFF`` above its anchor; at the end of a stance run the foot's offset from the original eases
-out, no faster than ``CATCH_UP`` beyond the original's own speed. Moves follow a minimum-jerk path (quintic,
-at rest at both ends; the ankle carries its push-off speed and eases it out) and lift toe and ankle by
-``TOE_LIFT`` times their horizontal length at mid-swing, on a bump at rest at both ends. The figures are
-Bandai walks': their toe rises 8.5% of the step's length, and moves for 6.3 + 3.3 d frame pairs on a step of
-d metres (5.3 + 3.3 d frames in the air).
+Plants and steps (per side, planned over the whole clip). A stance run whose toe stays within ``STILL_TOE`` of
+where it rests (on the frames it is on the floor) is planted already and left as it is. Any other starts with a
+plant where the toe comes down and to rest within ``ENTRY_FRAMES`` (the foot eases onto it), lifted onto the
+floor. A plant holds the toe on its anchor and the ankle on its anchor at the frame's foot length; the heel turns
+up about the toe (push-off) as far as the original's does where its ankle is off the ground, and as far as the leg
+needs to stay within ``REACH`` of its stretched length. A generated body often glides on while its feet are marked
+in contact; when the plant cannot hold any longer (the leg needs the heel up more than ``MAX_HEEL``, or the toe is
+``MAX_OFFSET`` from the original's), the foot steps: it lands :func:`swing_frames` later (more where the toe would
+move faster than its limit, below) on a new anchor, the original foot's place on the floor up to ``LEAD_FRAMES``
+ahead, chosen so that the next plant holds longest, counting twice the frames the original toe is within ``NEAR``
+of it. The right foot is planned after the left and ends each plant, where it can, so that its step does not
+overlap the left foot's (a walk, not a hop). A plant also lets go where the original toe rises ``LIFT_OFF`` above
+its anchor; at the end of a stance run the foot's offset from the original eases out, no faster than ``CATCH_UP``
+beyond the original's own speed. Moves follow a minimum-jerk path (quintic, at rest at both ends; the ankle
+carries its push-off speed and eases it out) and lift toe and ankle by ``TOE_LIFT`` times their horizontal length
+at mid-swing, on a bump at rest at both ends. The figures are Bandai walks': their toe rises 8.5% of the step's
+length, and moves for 6.3 + 3.3 d frame pairs on a step of d metres (5.3 + 3.3 d frames in the air).
 
-The knee is solved by two-bone IK: the hip stays, thigh and shin keep their lengths of that frame, the knee
-stays in the plane of the original bend (a 1 cm forward pull decides a straight leg's bend). Only knees,
-ankles and foot joints change (4, 5, 7, 8, 10, 11), and only on frames of a plant or step; every other value
-is returned bit for bit. No ankle or toe is put below the floor, or below where it already was. The result
-depends only on the input (no randomness).
+No pops. No ankle or toe moves further in a frame than the fastest move of that foot's ankle or toe in the
+original plus ``MAX_EXTRA`` (1.5 cm; the promise, tested over random walks, runs and sprints, is 2 cm): where the
+plan would, the foot follows it at that speed (the ankle held within the leg's reach and above the floor, the toe
+at the frame's foot length) until it catches up, and those frames hold nothing.
+
+The knee is solved by two-bone IK: the hip stays, thigh and shin keep their lengths of that frame, the knee stays
+in the plane of the original bend (a 1 cm forward pull decides a straight leg's bend). Only knees, ankles and foot
+joints change (4, 5, 7, 8, 10, 11), and only on frames of a plant, step or catch-up; every other value is returned
+bit for bit. No ankle or toe is put below the floor, or below where it already was. The result depends only on the
+input (no randomness).
 """
 from __future__ import annotations
 
@@ -50,6 +57,7 @@ SIDES = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot joint of the le
 LEG_JOINTS = (4, 5, 7, 8, 10, 11)  # the joints fix_feet may move
 CONTACT_HEIGHT = 0.05  # m above the joint's lowest height in the clip: higher is not a ground contact
 STANCE_SPEED = 0.1  # m/frame: a toe moving faster is swinging, whatever its channel says (the rule is 4.5 cm)
+STANCE_RATIO = 1.5  # ... unless it moves less than this times the root: a gliding foot keeps pace with the body
 GAP_FRAMES = 2  # stance gaps this short are bridged
 ENTRY_FRAMES, ENTRY_WAIT = 4, 0.005  # a run's first plant: where the toe rests this soon (waiting: m a frame)
 REACH = 0.99  # share of the stretched leg a planted leg may use (Bandai walks in stance: 0.98-1.0 at most)
@@ -60,7 +68,13 @@ SWING_FRAMES = (5, 11)  # the fewest and most frames a step is in the air
 SWING_BASE, SWING_PER_M = 5.3, 3.3  # a step of d metres is in the air SWING_BASE + SWING_PER_M * d frames
 LIFT_OFF = 0.015  # m: a plant lets go where the original toe rises this far above its anchor
 CATCH_UP = 0.05  # m/frame: the most a foot moves faster than the original while rejoining it
+EASE_FRAMES = 11  # the most frames a foot takes to rejoin the original
 TOE_LIFT = 0.085  # lift of toe and ankle at mid-swing, as a share of the step's horizontal length
+STILL_TOE = 0.003  # m: a stance run whose toe stays this close to where it rests is planted already ...
+STILL_LOW = 0.02  # m: ... counting the frames where the toe is this close to its lowest height in the clip
+NEAR = 0.02  # m: a landing scores the frames its plant holds, twice those where the original toe is this near
+MAX_EXTRA = 0.015  # m/frame: the most a fixed ankle or toe moves in a frame beyond the original's largest move
+PEAK = 2.0  # a move's fastest frame over its mean (minimum jerk: 1.875; the lift adds a little)
 KNEE_PULL = 0.01  # m: forward pull that decides which way a straight leg bends
 _STRAIGHT = 0.02  # m: a knee closer than this to the hip-ankle line counts as (nearly) straight
 _UP = np.array([0.0, 1.0, 0.0])
@@ -100,9 +114,11 @@ def stance_frames(joints: np.ndarray, contacts: np.ndarray) -> np.ndarray:
     j = _check(joints)
     g = ground_contacts(j, contacts)
     step = np.linalg.norm(np.diff(j[:, [10, 11]][..., [0, 2]].astype(np.float64), axis=0), axis=-1)
+    root = np.linalg.norm(np.diff(j[:, 0, [0, 2]].astype(np.float64), axis=0), axis=-1)
+    fast = step >= np.maximum(STANCE_SPEED, STANCE_RATIO * root)[:, None]
     slow = np.ones((len(j), 2), dtype=bool)
-    slow[1:] &= step < STANCE_SPEED
-    slow[:-1] &= step < STANCE_SPEED
+    slow[1:] &= ~fast
+    slow[:-1] &= ~fast
     stance = (g[:, [0, 2]] | g[:, [1, 3]]) & slow
     for s in range(2):
         edges = np.flatnonzero(np.diff(np.r_[0, stance[:, s].astype(np.int8), 0]))
@@ -146,6 +162,20 @@ class _Leg:
         legs = np.linalg.norm(self.K - self.H, axis=-1) + np.linalg.norm(self.A - self.K, axis=-1)
         self.reach = np.maximum(REACH * legs, np.linalg.norm(self.A - self.H, axis=-1))
         self.floor = floor
+        fastest = max(np.linalg.norm(np.diff(x, axis=0), axis=-1).max() for x in (self.A, self.F))
+        self.limit = float(fastest + MAX_EXTRA)  # m/frame: the most the fixed ankle or toe moves in a frame
+
+    def still(self, first: int, last: int) -> bool:
+        """Whether the original toe stays within STILL_TOE of where it is at ``first`` on the frames ``first..last``
+        where it is on the floor (within STILL_LOW of its lowest): a foot planted already."""
+        toe = self.F[first: last + 1]
+        low = toe[:, 1] - self.F[:, 1].min() < STILL_LOW
+        return bool((_flat(toe - self.F[first])[low] < STILL_TOE).all())
+
+    def swing(self, distance: float) -> int:
+        """Frames in the air of a step of ``distance`` m: Bandai's (:func:`swing_frames`), or more where the toe
+        would otherwise move faster than its limit."""
+        return max(swing_frames(distance), int(np.ceil(PEAK * distance / self.limit)) - 1)
 
     def anchor(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """Ankle and toe of the original at ``frame``, lifted onto the floor: where a plant holds the foot."""
@@ -203,22 +233,27 @@ class _Move:
 
 
 def _landing(leg: _Leg, end: int, stop: int, anchor: tuple[np.ndarray, np.ndarray]):
-    """The step from a plant on ``anchor`` held to frame ``end``: (landing frame, new anchors, distance) whose next
-    plant holds longest within the stance run ending at ``stop`` (the shortest such step), or None."""
+    """The step from a plant on ``anchor`` held to frame ``end``: (landing frame, new anchors, distance) onto the
+    floor whose next plant holds longest within the stance run ending at ``stop``, counting twice the frames the
+    original toe is within NEAR of it (the shortest such step), or None."""
     steps = []
     for lead in range(LEAD_FRAMES + 1):
         frames = SWING_FRAMES[0]
         for _ in range(2):  # the step's length sets its duration, which moves the landing
             new = leg.anchor(min(end + frames + 1 + lead, stop))
-            frames = swing_frames(float(_flat(new[1] - anchor[1])))
-        if end + frames + 1 <= stop:
-            new = leg.anchor(min(end + frames + 1 + lead, stop))
+            frames = leg.swing(float(_flat(new[1] - anchor[1])))
+        on = min(end + frames + 1 + lead, stop)
+        if end + frames + 1 <= stop and leg.F[on, 1] - leg.F[:, 1].min() <= LIFT_OFF:  # not mid-air
+            new = leg.anchor(on)
             steps.append((end + frames + 1, new, float(_flat(new[1] - anchor[1]))))
     if not steps:
         return None
-    lands = np.array([s[0] for s in steps])
-    held = leg.plant_ends(lands, stop, np.array([s[1][0] for s in steps]), np.array([s[1][1] for s in steps])) - lands
-    return steps[int(np.argmax(held))] if held.max() >= 0 else None
+    lands, toes = np.array([s[0] for s in steps]), np.array([s[1][1] for s in steps])
+    ends = leg.plant_ends(lands, stop, np.array([s[1][0] for s in steps]), toes)
+    if (ends < lands).all():
+        return None
+    near = [int((_flat(leg.F[a: b + 1] - toe) < NEAR).sum()) for a, b, toe in zip(lands, ends, toes)]
+    return steps[int(np.argmax(np.where(ends < lands, -np.inf, ends - lands + 2.0 * np.array(near))))]
 
 
 def _step(leg: _Leg, first: int, last: int, stop: int, anchor, busy: np.ndarray):
@@ -266,6 +301,9 @@ def _plan(leg: _Leg, stance: np.ndarray, busy: np.ndarray) -> tuple[list, list[_
     t, anchor, entry = enter(next_stance(0))
     while t is not None:
         stop = run_end[t]
+        if leg.still(t, stop):  # planted already: left as it is
+            t, anchor, entry = enter(next_stance(stop + 1))
+            continue
         last = int(leg.plant_ends(np.array([t]), stop, anchor[0][None], anchor[1][None])[0])
         if last < t:  # the leg cannot hold the foot here
             t, anchor, entry = enter(next_stance(t + 1))
@@ -282,8 +320,9 @@ def _plan(leg: _Leg, stance: np.ndarray, busy: np.ndarray) -> tuple[list, list[_
         elif end + 1 < T:  # the run is over: ease the foot's offset from the original out, with a step's lift
             distance = float(_flat(anchor[1] - leg.F[end]))
             offset = max(np.linalg.norm(start[0] - leg.A[end]), np.linalg.norm(anchor[1] - leg.F[end]))
-            frames = int(np.clip(np.ceil(1.875 * offset / CATCH_UP), 2, SWING_FRAMES[1]))  # 1.875: the quintic's peak
             own = leg.A[end] - leg.A[max(end - 1, t)]  # the original's own speed goes on in the move
+            rate = max(min(CATCH_UP, leg.limit - np.linalg.norm(own)), 0.01)
+            frames = int(np.clip(np.ceil(PEAK * offset / rate), 2, EASE_FRAMES))
             moves.append(_Move(end + 1, frames, *start[:2], None, distance, start[2] - own))
             t, anchor, entry = enter(next_stance(end + frames + 1))
         else:
@@ -338,10 +377,64 @@ def _render(leg: _Leg, plants: list, moves: list[_Move]):
         A_new = _place(leg.H[frames], leg.A[frames], A_des, leg.reach[frames])
         A_out[frames], F_out[frames] = A_new, A_new + leg.foot[frames, None] * _unit(F_des - A_new)
         moved[frames] = True
-    if leg.floor is not None:  # never lower than the floor, or than the original where it already was below
-        A_out[:, 1] = np.maximum(A_out[:, 1], np.minimum(leg.floor, leg.A[:, 1]))
-        F_out = _not_below(A_out, F_out, np.minimum(leg.floor, leg.F[:, 1]))
-    return A_out, F_out, moved, held
+    low = (np.minimum(leg.floor, leg.A[:, 1]), np.minimum(leg.floor, leg.F[:, 1])) if leg.floor is not None else None
+    if low is not None:  # never lower than the floor, or than the original where it already was below
+        A_out[:, 1] = np.maximum(A_out[:, 1], low[0])
+        F_out = _not_below(A_out, F_out, low[1])
+    A_out, F_out, late = _follow(leg, A_out, F_out, low)
+    return A_out, F_out, moved | late, held & ~late[:, None]
+
+
+def _toward(a: np.ndarray, n: float, prev: np.ndarray, want: np.ndarray, limit: float, low: float) -> np.ndarray:
+    """The toe at ``n`` from the ankle ``a``, not below ``low``, nearest the direction of ``want`` within ``limit`` of
+    ``prev``: from the sphere's point nearest ``prev``, turned toward ``want`` as far as the limit allows (on a
+    grid of 65 turns; where none is within the limit, the nearest to ``prev``)."""
+    share = np.linspace(0.0, 1.0, 65)[:, None]
+    way = _unit((1.0 - share) * _unit(prev - a) + share * _unit(want - a))
+    toes = _not_below(np.broadcast_to(a, way.shape), a + n * way, np.full(len(way), low))
+    gap = np.linalg.norm(toes - prev, axis=-1)
+    ok = np.flatnonzero(gap <= limit)
+    return toes[ok[-1]] if len(ok) else toes[np.argmin(gap)]
+
+
+def _within(x: np.ndarray, prev: np.ndarray, limit: float, hip: np.ndarray, reach: float, low: float) -> np.ndarray:
+    """A point near ``x`` within ``limit`` of ``prev``, within ``reach`` of ``hip`` and not below ``low``
+    (alternating projections onto the three convex sets; the last one, reach, holds exactly)."""
+    for _ in range(20):
+        if np.linalg.norm(x - prev) <= limit and x[1] >= low and np.linalg.norm(x - hip) <= reach:
+            return x
+        x = prev + (x - prev) * min(1.0, limit / max(np.linalg.norm(x - prev), 1e-12))
+        x = np.array([x[0], max(x[1], low), x[2]])
+        x = hip + (x - hip) * min(1.0, reach / max(np.linalg.norm(x - hip), 1e-12))
+    return x
+
+
+def _follow(leg: _Leg, A: np.ndarray, F: np.ndarray, low) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ankles and toes (T,3) that follow ``A`` and ``F`` no faster than the leg's limits (no pop, whatever the plan
+    asks), and the frames where they lag it. Where the plan keeps to the limits they are the plan, bit for bit."""
+    A, F = A.copy(), F.copy()
+    late = np.zeros(len(A), dtype=bool)
+    limit = leg.limit
+    floor = None if low is None else low[0]
+    for t in range(1, len(A)):
+        goal, prev_a, prev_f = A[t].copy(), A[t - 1], F[t - 1]
+        if np.linalg.norm(goal - prev_a) <= limit and np.linalg.norm(F[t] - prev_f) <= limit:
+            continue
+        n, way, toe_low = leg.foot[t], _unit(F[t] - goal), -np.inf if low is None else low[1][t]
+
+        def foot(share: float) -> tuple[np.ndarray, np.ndarray]:
+            a = _within(prev_a + share * (goal - prev_a), prev_a, limit, leg.H[t], leg.reach[t],
+                        -np.inf if floor is None else floor[t])
+            return a, _toward(a, n, prev_f, a + n * way, limit, toe_low)
+
+        lo, hi, (a, f) = 0.0, 1.0, foot(1.0)
+        if np.linalg.norm(f - prev_f) > limit:  # no toe within the limit: the ankle moves less
+            for _ in range(12):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if np.linalg.norm(foot(mid)[1] - prev_f) <= limit else (lo, mid)
+            a, f = foot(lo)
+        A[t], F[t], late[t] = a, f, True
+    return A, F, late
 
 
 def _knees(j: np.ndarray, side: tuple[int, int, int, int], A_new: np.ndarray, weight: np.ndarray) -> np.ndarray:
