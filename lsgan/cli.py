@@ -730,10 +730,13 @@ Examples:
 @click.option("-o", "--output", required=True, type=Out(), help="Output folder: *_features.npy, *_joints.npy, manifest.json.")
 @click.option("--raw-joints", is_flag=True, help="Also write *_joints_raw.npy: the joints as decoded (recovered from "
               "*_features.npy), before they were made rigid; *_joints.npy, the previews and exports are the rigid ones.")
+@click.option("--fix-feet/--no-fix-feet", default=False, show_default=True, help="Hold each foot still while "
+              "the features' contact channels say it touches the ground (IK on the leg only), once, on the motion "
+              "that every output then shows (*_joints.npy, previews, exports; the server serves motions without).")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
               "wrote there (never other files).")
 def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, frames, seconds, num, seed,
-             text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, force) -> None:
+             text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, fix_feet, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.generation import Request, claim_generation, read_prompts, write_generation
@@ -750,7 +753,8 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
                                 seconds=seconds, num=num)
         return _generate_timeline(timeline, overlap, gan=gan, vae=vae, runtime=runtime, int8=int8, seed=seed,
                                   device=device, text_encoder_path=text_encoder_path, batch_size=batch_size,
-                                  steps=steps, guidance=guidance, output=output, raw_joints=raw_joints, force=force)
+                                  steps=steps, guidance=guidance, output=output, raw_joints=raw_joints, force=force,
+                                  fix_feet=fix_feet)
     requests = [Request(text=t, frames=n_frames) for t in texts] + [Request(action=a, frames=n_frames) for a in actions]
     if prompts:
         requests += read_prompts(prompts, n_frames)
@@ -762,12 +766,12 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
             from lsgan.deploy.runtime import generate_onnx
 
             result = generate_onnx(gan, requests, num=num, seed=seed, variant="int8" if int8 else "fp32",
-                                   batch_size=batch_size)
+                                   batch_size=batch_size, fix_feet=fix_feet)
         else:
             from lsgan.generate import generate as run
 
             result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
-                         batch_size=batch_size, steps=steps, guidance=guidance)
+                         batch_size=batch_size, steps=steps, guidance=guidance, fix_feet=fix_feet)
         if result.kind == "gan" and (steps is not None or guidance is not None):
             click.echo(f"note: --steps/--guidance ignored: {gan} is a GAN (they set a diffusion model's sampling)",
                        err=True)
@@ -882,7 +886,7 @@ Examples:
   lsgan export --glb out/ --body-model ~/models -o glb/   # SMPL body (skinned) + fitted .npz per motion
   lsgan export --glb walk.npy --body-model ~/models/smplx/SMPLX_MALE.npz --gender male -o walk.glb
   lsgan export --bvh out/ -o bvh/
-  lsgan export --bvh out/ --no-fix-feet -o bvh/    # feet as generated (default: held still in contact)
+  lsgan export --bvh out/ -o bvh/                 # the motions of record, as generate wrote them
   lsgan export --bvh motion_features.npy --fps 30 -o motion.bvh
   lsgan export --gif out/ -o previews/             # stick-figure previews, captions as titles
   lsgan export --mp4 out/ -o previews/             # the same as H.264 videos (ffmpeg comes with the package)
@@ -915,8 +919,9 @@ Examples:
 @click.option("-o", "--output", required=True, type=Out(), help="Output file, or folder when INPUT holds several motions.")
 @click.option("--force", is_flag=True, help="Replace existing outputs that lsgan wrote (never other files).")
 @click.option("--fix-feet/--no-fix-feet", default=None, help="Hold each foot still while in contact, by IK on the "
-              "leg only. Default: on for generated motions (the contacts of their features); --fix-feet on a plain "
-              "joints .npy estimates the contacts from its joints.")
+              "leg only. Generated motions carry their feet from `lsgan generate` (its --fix-feet), "
+              "so that the export shows the motion of record; --fix-feet here holds them again (the contacts of "
+              "their features), or on a plain joints .npy with contacts estimated from its joints.")
 def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, model_type, fit_iterations, fps,
            rig, joint_map, preset, output, force, fix_feet) -> None:
     """Export motions (joints .npy, features .npy or a generate folder) for Blender, three.js and game engines."""

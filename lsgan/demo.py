@@ -551,7 +551,7 @@ def _generate(run: _Run) -> tuple[str, dict]:
 
     s, p = run.settings, run.paths
     requests = [Request(text=q, frames=s.frames) for q in s.prompts]
-    res = generate(p["gan"], p["vae"], requests, num=1, seed=s.seed, device=run.device)
+    res = generate(p["gan"], p["vae"], requests, num=1, seed=s.seed, device=run.device, fix_feet=True)
     with atomic_folder(p["motions"]) as tmp:
         write_generation(res, tmp)
     return "ran", {"ms_per_motion": res.ms_per_motion, "note": f"{res.ms_per_motion:.1f} ms per motion"}

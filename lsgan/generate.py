@@ -265,8 +265,10 @@ def generate(
     steps: int | None = None,
     guidance: float | None = None,
     eta: float | None = None,
+    fix_feet: bool = False,
 ) -> Generation:
     """``num`` motions per request. Deterministic under ``seed`` (same inputs, same device -> same motions).
+    ``fix_feet``: feet held still in contact, once, on the motion of record (:func:`decoded_motion`).
 
     ``gan``: a generator checkpoint, GAN or diffusion. ``steps`` (DDIM steps), ``guidance`` (classifier-free
     guidance scale) and ``eta`` are the diffusion's sampling options (default: its config's sample_steps,
@@ -277,18 +279,19 @@ def generate(
     loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path,
                          strict_pairing=strict_pairing)
     return generate_loaded(loaded, requests, num=num, seed=seed, batch_size=batch_size, steps=steps,
-                           guidance=guidance, eta=eta)
+                           guidance=guidance, eta=eta, fix_feet=fix_feet)
 
 
 def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, seed: int = 0, batch_size: int = 256,
-                    steps: int | None = None, guidance: float | None = None, eta: float | None = None) -> Generation:
+                    steps: int | None = None, guidance: float | None = None, eta: float | None = None,
+                    fix_feet: bool = False) -> Generation:
     """:func:`generate` with the models already loaded (the same motions for the same arguments)."""
     noise, g = draw_noise(seed, len(requests) * num, noise_dim(loaded.model, loaded.meta))
     feats, timings, sampling = run_models(loaded, requests, [num] * len(requests), noise, g=g, batch_size=batch_size,
                                           steps=steps, guidance=guidance, eta=eta)
-    motions = [decoded_motion(requests[k // num], k % num, f) for k, f in enumerate(feats)]
+    motions = [decoded_motion(requests[k // num], k % num, f, fix_feet) for k, f in enumerate(feats)]
     return Generation(motions=motions, timings_s=timings, gan=loaded.gan, vae=loaded.vae, seed=seed,
-                      kind=loaded.meta["kind"], sampling=sampling)
+                      kind=loaded.meta["kind"], sampling=sampling, fix_feet=fix_feet)
 
 
 def _decode(decoder, vmeta: dict, z: torch.Tensor, frames: list[int], dev: torch.device, batch_size: int,

@@ -69,11 +69,18 @@ def draw_noise(seed: int, n: int, dim: int) -> np.ndarray:
     return np.random.default_rng(seed).standard_normal((n, dim), dtype=np.float32)
 
 
-def decoded_motion(request: Request, sample: int, features: np.ndarray) -> Motion:
-    """The Motion of decoded features (T, 263): joints recovered once and made rigid once, the raw ones kept."""
+def decoded_motion(request: Request, sample: int, features: np.ndarray, fix_feet: bool = False) -> Motion:
+    """The Motion of decoded features (T, 263): joints recovered once and made rigid once, the raw ones kept.
+    ``fix_feet``: the feet held still while the features' contact channels say so (:mod:`lsgan.export.feet`),
+    once, on this motion of record, so that every output shows the same feet."""
     features = np.asarray(features, dtype=np.float32)
     raw = recover_from_ric(features)
-    return Motion(request=request, sample=sample, features=features, joints=make_rigid(raw), raw_joints=raw)
+    joints = make_rigid(raw)
+    if fix_feet:
+        from lsgan.export.feet import contacts_from_features, fix_feet as hold_feet
+
+        joints = hold_feet(joints, contacts_from_features(features)).astype(np.float32)
+    return Motion(request=request, sample=sample, features=features, joints=joints, raw_joints=raw)
 
 
 @dataclass
@@ -90,6 +97,7 @@ class Generation:
     # records them); None: hashed from ``gan`` and ``vae`` when written
     checkpoints: dict | None = None
     timeline: dict | None = None  # ``generate --timeline``: its segments and how they were joined (lsgan.timeline)
+    fix_feet: bool = False  # the motions' feet held still in contact (decoded_motion), once, for every output
 
     @property
     def ms_per_motion(self) -> float:
@@ -160,6 +168,7 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
     generator = sources["generator"]
     manifest = {
         "seed": result.seed,
+        "fix_feet": result.fix_feet,
         "fps": FPS,
         "generator": {"kind": result.kind, **generator, **result.sampling},
         "gan": generator,  # the generator checkpoint under its historical key, whatever its kind

@@ -140,7 +140,7 @@ def join_generation(result: Generation, segments: list[Segment], overlap: int, s
     features = join_features([m.features for m in result.motions], frames, overlap)
     starts = np.concatenate([[0], np.cumsum(frames)[:-1]]).tolist()
     text = "; ".join(s.text for s in segments)
-    motion = decoded_motion(Request(text=text, frames=len(features)), 0, features)
+    motion = decoded_motion(Request(text=text, frames=len(features)), 0, features, result.fix_feet)
     timeline = {
         "source": str(source) if source else "inline",
         "overlap": overlap,
@@ -162,18 +162,19 @@ def generate_timeline(gan: str | os.PathLike, vae: str | os.PathLike | None, seg
                       overlap: int = DEFAULT_OVERLAP, source: str | None = None, runtime: str = "torch",
                       int8: bool = False, seed: int = 0, device: str = "auto", text_encoder_path: str | None = None,
                       batch_size: int = 256, steps: int | None = None,
-                      guidance: float | None = None) -> Generation:
+                      guidance: float | None = None, fix_feet: bool = False) -> Generation:
     """One motion of sum(frames) from ``segments``, by the generator (torch checkpoints, or an ONNX export's folder
-    with ``runtime='onnx'``). Deterministic under ``seed``, like ``generate``."""
+    with ``runtime='onnx'``). Deterministic under ``seed``, like ``generate``; ``fix_feet`` as there."""
     if runtime == "onnx":
         from lsgan.deploy.runtime import load
 
         model = load(gan, variant="int8" if int8 else "fp32")
-        return timeline_motion(segments, overlap, lambda r: model.generate(r, seed=seed, batch_size=batch_size),
+        return timeline_motion(segments, overlap, lambda r: model.generate(r, seed=seed, batch_size=batch_size,
+                                                                              fix_feet=fix_feet),
                                model.max_frames, source)
     from lsgan.generate import generate_loaded, load_models
 
     loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path)
     run = lambda r: generate_loaded(loaded, r, seed=seed, batch_size=batch_size, steps=steps,  # noqa: E731
-                                    guidance=guidance)
+                                    guidance=guidance, fix_feet=fix_feet)
     return timeline_motion(segments, overlap, run, loaded.max_frames, source)

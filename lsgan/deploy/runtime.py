@@ -184,8 +184,9 @@ class OnnxMotionModel:
         return out
 
     def generate(self, requests: list[Request], *, num: int = 1, seed: int = 0, noise: np.ndarray | None = None,
-                 batch_size: int = 256) -> Generation:
-        """``num`` motions per request; ``noise`` (len(requests)*num, noise_dim) replaces the seeded draw."""
+                 batch_size: int = 256, fix_feet: bool = False) -> Generation:
+        """``num`` motions per request; ``noise`` (len(requests)*num, noise_dim) replaces the seeded draw;
+        ``fix_feet`` as in :func:`lsgan.generation.decoded_motion`."""
         n, frames = len(requests) * num, [r.frames for r in requests for _ in range(num)]
         if n == 0:
             raise ValueError("nothing to generate: no requests (or num=0)")
@@ -205,8 +206,8 @@ class OnnxMotionModel:
         t0 = time.perf_counter()
         feats = self.decode(z, frames, batch_size)
         timings["vae_decoding"] = time.perf_counter() - t0
-        motions = [decoded_motion(requests[k // num], k % num, f) for k, f in enumerate(feats)]
-        return Generation(motions=motions, timings_s=timings, seed=seed, **self._provenance())
+        motions = [decoded_motion(requests[k // num], k % num, f, fix_feet) for k, f in enumerate(feats)]
+        return Generation(motions=motions, timings_s=timings, seed=seed, fix_feet=fix_feet, **self._provenance())
 
     def _provenance(self) -> dict:
         """Generation's fields that say where the motions came from: the source checkpoints and this export."""
@@ -244,9 +245,9 @@ def load(folder: str | os.PathLike, *, variant: str = "fp32", threads: int | Non
 
 def generate_onnx(folder: str | os.PathLike, requests: list[Request], *, num: int = 1, seed: int = 0,
                   noise: np.ndarray | None = None, variant: str = "fp32", threads: int | None = None,
-                  batch_size: int = 256) -> Generation:
+                  batch_size: int = 256, fix_feet: bool = False) -> Generation:
     """``lsgan generate --runtime onnx``: :func:`load` then :meth:`OnnxMotionModel.generate`."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     return load(folder, variant=variant, threads=threads).generate(requests, num=num, seed=seed, noise=noise,
-                                                                  batch_size=batch_size)
+                                                                  batch_size=batch_size, fix_feet=fix_feet)

@@ -59,9 +59,10 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
     With ``rig`` (a BVH file; BVH or GLB) each motion is retargeted onto that skeleton through the joint map
     ``joint_map`` (a JSON file) or ``preset`` (:mod:`lsgan.export.retarget`).
 
-    ``fix_feet`` holds the feet still while in contact (:mod:`lsgan.export.feet`), with the contacts of each
-    motion's features (a generate folder's ``*_features.npy``, or a features .npy); True also fixes plain joints
-    with contacts estimated from them; None (the default) fixes the motions that have features, False none.
+    ``fix_feet`` (True) holds the feet still while in contact (:mod:`lsgan.export.feet`), with the contacts of each
+    motion's features (a generate folder's ``*_features.npy``, or a features .npy), else contacts estimated from
+    the joints. None or False (the default) exports the motions as they are: a generate folder's already carry
+    the feet ``lsgan generate`` gave them, so the export shows the motion of record.
     """
     from lsgan.data.body_model import read_body_model
     from lsgan.export.body import fit_body, write_fit_npz
@@ -145,7 +146,7 @@ def clean_feet(source: str | Path, motions: list[tuple[str, np.ndarray]], fix: b
     from lsgan.data.clip import load_npy
     from lsgan.export.feet import contacts_from_features, estimate_contacts, fix_feet
 
-    if fix is False:
+    if not fix:  # generated motions carry the feet generate gave them (lsgan.generation.decoded_motion)
         return motions
     out = []
     for name, joints in motions:
@@ -153,9 +154,7 @@ def clean_feet(source: str | Path, motions: list[tuple[str, np.ndarray]], fix: b
         features = load_npy(path) if path is not None else None
         if features is not None and features.shape == (len(joints), FEATURE_DIM):
             out.append((name, fix_feet(joints, contacts_from_features(features))))
-        elif fix:  # plain joints: the contacts their features would carry; the floor only if they stand on it
+        else:  # plain joints: the contacts their features would carry; the floor only if they stand on it
             floor = 0.0 if joints[..., 1].min() > -0.05 else None
             out.append((name, fix_feet(joints, estimate_contacts(joints), floor=floor)))
-        else:
-            out.append((name, joints))
     return out
