@@ -129,15 +129,16 @@ def describe(error: BaseException) -> str:
     if isinstance(error, OSError) and error.filename is not None:
         said = PLAIN_ERRNO.get(error.errno) or error.strerror or f"cannot write it ({error.args[0]})"
         return f"{error.filename}: {said[:1].lower()}{said[1:]}"
-    if isinstance(error, (ValueError, OSError, RuntimeError)) and str(error):
-        return str(error)
-    if isinstance(error, MemoryError):
+    if isinstance(error, MemoryError) or (isinstance(error, RuntimeError) and "alloc" in str(error)
+                                          and "bytes" in str(error)):  # torch's allocator says it so
         return _out_of_memory(error)
+    if isinstance(error, (ValueError, OSError, RuntimeError)) and str(error):
+        return " ".join(str(error).split("\n"))
     return (f"internal error: {type(error).__name__}: {error} (please report it; LSGAN_DEBUG=1 or --debug "
             "shows the traceback)")
 
 
-def _out_of_memory(error: MemoryError) -> str:
+def _out_of_memory(error: BaseException) -> str:
     """A MemoryError no reader refused beforehand, in one line: the allocation that failed (numpy says its size)
     and the file being worked on, the ``path`` of the innermost function of the traceback that has one."""
     lines = str(error).strip().splitlines()

@@ -246,14 +246,7 @@ def _prepare_run_folder(run: Path, inputs: dict) -> bool:
 def _clear_demo(out: Path) -> None:
     """``--fresh``: remove what the demo wrote in ``out`` (its own files, by the registry), nothing else."""
     for name in CONTENTS:
-        p = out / name
-        if p.is_dir() and not p.is_symlink() and not outputs.is_ours(p):
-            outputs.clear_ours(p)
-        if outputs.is_ours(p) or p.is_dir():
-            try:
-                outputs.remove(p)
-            except outputs.OutputError:
-                pass  # a folder still holding the user's files: it stays, with them
+        outputs.clear_path(out / name)  # a folder still holding the user's files stays, with them
 
 
 def _check_folder(out: Path, settings: DemoSettings, fresh: bool) -> None:

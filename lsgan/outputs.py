@@ -80,7 +80,8 @@ def _listing(folder: Path) -> dict[str, str]:
 
 
 def _content(listing: dict[str, str]) -> str:
-    return hashlib.sha256("".join(f"{k}|{v}\n" for k, v in sorted(listing.items())).encode()).hexdigest()
+    """One hash of a listing, unambiguous whatever the names hold (JSON-encoded pairs)."""
+    return hashlib.sha256(json.dumps(sorted(listing.items())).encode()).hexdigest()
 
 
 def _legacy_tree(folder: Path) -> str:
@@ -144,12 +145,27 @@ def made_folder(path: str | os.PathLike) -> bool:
 
 
 def _made_folder(entry: dict, path: Path) -> bool:
-    """A folder lsgan made (:func:`make_folder`): the same folder (inode), whatever it holds now."""
+    """A folder lsgan made (:func:`make_folder`), whatever it holds now: the same inode, and the same random id in
+    its own registry as in its parent's entry (a new folder that got the inode back, with a registry copied into
+    it, is the user's)."""
     try:
         st = path.lstat()
     except OSError:
         return False
-    return bool(entry.get("folder")) and path.is_dir() and not path.is_symlink() and st.st_ino == entry.get("ino")
+    if not (entry.get("folder") and path.is_dir() and not path.is_symlink() and st.st_ino == entry.get("ino")):
+        return False
+    return isinstance(entry.get("id"), str) and _folder_id(path) == entry["id"]
+
+
+def _folder_id(folder: Path) -> str | None:
+    """The id :func:`make_folder` put in the folder's own registry (None if there is none)."""
+    if (folder / REGISTRY).is_symlink():
+        return None
+    try:
+        data = json.loads((folder / REGISTRY).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return data.get("id") if isinstance(data, dict) and isinstance(data.get("id"), str) else None
 
 
 # ----------------------------------------------------------------------------------------------- registry
@@ -190,22 +206,26 @@ class _Registry:
     def __init__(self, folder: Path) -> None:
         self.folder = folder
         self.entries = _read_entries(folder)
-        self._saved = json.dumps(self.entries, sort_keys=True)
+        self.id = _folder_id(folder)  # set by make_folder: this folder is lsgan's
+        self._saved = self._state()
+
+    def _state(self) -> str:
+        return json.dumps({"entries": self.entries, **({"id": self.id} if self.id else {})}, sort_keys=True)
 
     def save(self) -> None:
-        """Write the registry through ``.lsgan-outputs.json.tmp`` and a rename, when it changed; an empty one
-        is removed."""
-        text = json.dumps({"entries": self.entries}, indent=0, sort_keys=True)
-        if json.dumps(self.entries, sort_keys=True) == self._saved:
+        """Write the registry through ``.lsgan-outputs.json.tmp`` and a rename, when it changed; one that lists
+        nothing and is no made folder's is removed."""
+        text = json.dumps(json.loads(self._state()), indent=0, sort_keys=True)
+        if self._state() == self._saved:
             return
         reg, tmp = self.folder / REGISTRY, self.folder / _REGISTRY_TMP
         for p in (reg, tmp):
             if (p.exists() or p.is_symlink()) and not _is_registry_file(p, partial=p == tmp):
                 raise OutputError(f"{p}: is not lsgan's registry of outputs; move it away (lsgan records what it "
                                   "writes in that file)")
-        if not self.entries:  # nothing of lsgan's is left here: no registry either (checked above to be one)
+        if not self.entries and not self.id:  # nothing of lsgan's is left here: no registry either (checked above)
             reg.unlink(missing_ok=True)
-            self._saved = "{}"
+            self._saved = self._state()
             return
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
@@ -216,7 +236,7 @@ class _Registry:
             e.filename = e.filename or str(reg)
             tmp.unlink(missing_ok=True)  # this process's own, truncated under the lock
             raise
-        self._saved = json.dumps(self.entries, sort_keys=True)
+        self._saved = self._state()
 
 
 @contextmanager
@@ -271,8 +291,12 @@ def make_folder(path: str | os.PathLike) -> Path:
         if path.is_dir():
             return path
         raise
-    with _registry(path.parent) as reg:
-        reg.entries[path.name] = {"folder": True, "ino": path.lstat().st_ino}
+    made = secrets.token_hex(8)
+    with _registry(path) as inner:
+        inner.id = made
+    with _registry(path.parent) as reg:  # a writer's note on this name stays
+        reg.entries[path.name] = {**reg.entries.get(path.name, {}), "folder": True, "ino": path.lstat().st_ino,
+                                  "id": made}
     return path
 
 
@@ -541,14 +565,25 @@ def _writer_running(writer: object) -> bool:
     return pid != os.getpid() and _alive(pid) and _start_time(pid) == start
 
 
+def _noted(path: Path) -> Path:
+    """Where a writer's note on ``path`` goes: ``path`` itself, or its highest missing ancestor (which the command
+    will make) when its folder does not exist yet."""
+    while not path.parent.is_dir() and path.parent != path:
+        path = path.parent
+    return path
+
+
 def check_writer(path: str | os.PathLike) -> None:
-    """Refuse ``path`` when another lsgan process that is still running noted that it writes it (two commands
-    writing one output would each replace the other's work)."""
+    """Refuse ``path`` when another lsgan process that is still running noted that it writes it, or a folder it
+    will make for it (two commands writing one output would each replace the other's work)."""
     path = Path(path)
-    writer = _read_entries(path.parent).get(path.name, {}).get("writer") if plain_name(path.name) else None
-    if _writer_running(writer):
-        raise OutputError(f"{path}: another lsgan process (pid {writer[0]}) is writing it; wait for it to end or "
-                          "choose another output")
+    for p in [path, *path.parents]:
+        writer = _read_entries(p.parent).get(p.name, {}).get("writer") if p.parent.is_dir() else None
+        if _writer_running(writer):
+            raise OutputError(f"{path}: another lsgan process (pid {writer[0]}) is writing {p}; wait for it to "
+                              "end or choose another output")
+        if p.parent.is_dir() and not (p.parent / REGISTRY).is_file():
+            break
 
 
 _claimed: list[Path] | None = None
@@ -573,8 +608,8 @@ def claims() -> Iterator[None]:
 def reserve(path: str | os.PathLike) -> None:
     """Note in the registry that this command writes ``path`` (after :func:`check_writer`), during
     :func:`claims` only."""
-    path = Path(path)
-    if _claimed is None or not path.parent.is_dir() or not plain_name(path.name):
+    path = _noted(Path(path))
+    if _claimed is None or not plain_name(path.name) or not path.parent.is_dir():
         return
     with _registry(path.parent) as reg:
         entry = reg.entries.get(path.name, {})
@@ -607,9 +642,17 @@ def check_apart(*paths: str | os.PathLike) -> None:
                 raise OutputError(f"{a}: is also the output {b} (or lies inside it); give each output its own path")
 
 
+NAME_MAX = 255  # bytes in one file name on Linux and macOS file systems
+
+
 def _check_name(path: Path) -> None:
+    """Refuse an output named like the registry, or too long for the temporary written beside it."""
     if path.name in (REGISTRY, _REGISTRY_TMP):
         raise OutputError(f"{path}: is the name of lsgan's registry of outputs; choose another name")
+    temp = len(f".{path.name}.{os.getpid()}.abcdefgh.old".encode())
+    if temp > NAME_MAX:
+        raise OutputError(f"{path}: name too long: the temporary written beside it would take {temp} bytes "
+                          f"(at most {NAME_MAX}); choose a shorter name")
 
 
 def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable[str | os.PathLike] = ()) -> Path:
@@ -687,27 +730,35 @@ def claim_folder(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
 
 
 def clear_ours(folder: Path) -> list[Path]:
-    """Delete what in ``folder`` is still exactly what lsgan wrote, and the folders lsgan made that are then
-    empty; returns what was removed. Everything else stays. lsgan looks into a sub-folder only when it made it
-    (then by that folder's registry) or wrote it whole (then only the files its record here lists): a folder
-    the user put there, whatever registry it holds, is theirs."""
-    removed: list[Path] = []
-    entries = _read_entries(folder)
-    for p in sorted(folder.iterdir()):
-        entry, listed = entries.get(p.name), _listed_files(entries.get(p.name), p)
-        if _made_folder(entry or {}, p):
-            removed += clear_ours(p)
-        elif listed is not None and not _matches(entry, p):  # a folder lsgan wrote whole, since added to
-            for rel in sorted(listed):
-                (p / rel).unlink()
-                removed.append(p / rel)
+    """Delete what in ``folder`` is still exactly what lsgan wrote (:func:`clear_path` of each entry its registry
+    lists); returns what was removed. Everything else stays."""
     sweep_temps(folder)
-    if not (folder / REGISTRY).is_file():
+    removed: list[Path] = []
+    for name in sorted(_read_entries(folder)):
+        p = folder / name
+        if p.exists() or p.is_symlink():
+            removed += clear_path(p)
+    return removed
+
+
+def clear_path(path: Path) -> list[Path]:
+    """Remove what lsgan wrote at ``path``: a file or folder still as written; the files of a folder it wrote
+    whole that the record of it still vouches for; the contents of a folder it made (by that folder's registry),
+    then the folder once empty. A folder the user put there, whatever registry it holds, is theirs."""
+    entry = _read_entries(path.parent).get(path.name) if plain_name(path.name) else None
+    removed: list[Path] = []
+    if entry is None or entry.get("temp"):
         return removed
-    with _registry(folder) as reg:
-        for name, entry in sorted(reg.entries.items()):
-            p = folder / name
-            if not entry.get("temp") and _removable(entry, p):
-                _remove_entry(reg, p)
-                removed.append(p)
+    listed = _listed_files(entry, path)
+    if _made_folder(entry, path):
+        removed += clear_ours(path)
+    elif listed is not None and not _matches(entry, path):  # a folder lsgan wrote whole, since added to
+        for rel in sorted(listed):
+            (path / rel).unlink()
+            removed.append(path / rel)
+    try:
+        remove(path)
+        removed.append(path)
+    except OutputError:
+        pass  # changed, or still holding the user's files: it stays
     return removed

@@ -755,7 +755,7 @@ def _npz_entry(npz, key: str, path: str | os.PathLike) -> Any:
         if header is not None and header[1].hasobject:
             return _pickled_payload(fh, source, header[0], _member_capacity(info) - fh.tell())
         if header is not None:
-            _check_declared(source, *header, _member_capacity(info) - fh.tell())
+            _check_declared(source, *header, min(_member_capacity(info) - fh.tell(), MEMORY_BUDGET))
     return npz[key]
 
 

@@ -405,7 +405,7 @@ CASES = [
     Case("output-is-folder", lambda w, p: output_is_folder(w), 1, "is a folder"),
     Case("output-under-a-file", lambda w, p: output_under_a_file(w), 1, "is not a folder"),
     Case("report-user-file", lambda w, p: report_is_user_file(w), 1, "pass --force"),
-    Case("staging-user-folder", lambda w, p: staging_is_user_folder(w), 1, "not lsgan's staging folder"),
+    Case("staging-user-folder", lambda w, p: staging_is_user_folder(w), 1, "not a staging folder lsgan made"),
     # training
     Case("train-out-user-files", run_with_user_files, 1, "not an lsgan run"),
     Case("train-out-existing-run", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe", p / "tiny.yaml",

@@ -556,3 +556,19 @@ def test_cmu_with_bandai_map_is_unmapped(cmu_dir):
     path = cmu_dir / "131_01.bvh"
     with pytest.raises(ClipError, match="unmapped skeleton"):
         apply_joint_map(forward_kinematics(read_bvh(path)), read_bvh(path).names, PRESETS["bandai"], str(path))
+
+
+def test_a_hierarchy_of_a_million_joints_is_refused_while_it_is_read(tmp_path):
+    """More joints than any character has are refused at the first one past the bound, with a short message."""
+    from lsgan.data.bvh import MAX_JOINTS, read_bvh
+
+    joints = "".join(f"JOINT j{k}\n{{\nOFFSET 0 1 0\nCHANNELS 3 Zrotation Xrotation Yrotation\n" for k in
+                     range(MAX_JOINTS + 5))
+    text = ("HIERARCHY\nROOT r\n{\nOFFSET 0 0 0\nCHANNELS 3 Zrotation Xrotation Yrotation\n" + joints
+            + "}\n" * (MAX_JOINTS + 6) + "MOTION\nFrames: 1\nFrame Time: 0.05\n0 0 0\n")
+    path = tmp_path / "many.bvh"
+    path.write_text(text)
+    with pytest.raises(Exception, match="more than 4,096 joints") as e:
+        read_bvh(path)
+    assert len(str(e.value)) < 300
+

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lsgan import outputs
 from lsgan.outputs import OutputError
 import torch
 
@@ -282,6 +283,7 @@ def test_a_run_saved_before_the_shared_loop_resumes_exactly(text_cache: Path, tm
     state = load_state(tmp_path / "old")
     torch.save({"opt_g": state["opt_g"], "opt_d": state["opt_d"], "best_fid": state["best"],
                 "rng": state["rng"][0]["torch"]}, tmp_path / "old" / "last" / "state.pt")
+    outputs.record(tmp_path / "old" / "last")  # as the earlier version recorded its checkpoint
     resumed = train_gan(text_cache, tmp_path / "old", gan=gan, train=quick(), device="cpu", progress=False, resume=True)
     straight = train_gan(text_cache, tmp_path / "new", gan=gan, train=quick(), device="cpu", progress=False)
     assert resumed["best_val_latent_fid"] == straight["best_val_latent_fid"]

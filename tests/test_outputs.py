@@ -216,14 +216,15 @@ def test_a_users_file_under_the_registrys_name_is_kept(tmp_path):
         outputs.claim_file(tmp_path / outputs.REGISTRY)
 
 
-def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path):
+@pytest.mark.parametrize("name", ["s.h5", "new/deep/s.h5"])
+def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path, name):
     """B5: two commands writing one output would each replace the other's: the second is refused while the
     first runs, and free once it is gone."""
     import subprocess
     import sys
     import time
 
-    target = tmp_path / "s.h5"
+    target = tmp_path / name  # B5: also below folders that do not exist yet
     holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
                                f"with outputs.claims():\n    outputs.claim_file({str(target)!r})\n"
                                "    print('held', flush=True)\n    time.sleep(30)"],
@@ -237,6 +238,54 @@ def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path):
         holder.wait()
     time.sleep(0.05)
     assert outputs.claim_file(target) == target
+
+
+def test_a_new_folder_that_got_a_made_folders_inode_is_the_users(tmp_path):
+    """The outside check's B1 (second round): ext4 gives a new folder the inode of one just removed; the random
+    id in the made folder's own registry tells them apart."""
+    import shutil
+
+    made = outputs.make_folder(tmp_path / "out" / "run")
+    entry = json.loads((tmp_path / "out" / outputs.REGISTRY).read_text())["entries"]["run"]
+    shutil.rmtree(made)
+    backup = tmp_path / "backup"
+    _write(backup / "a.npy", b"motion")  # a copy of lsgan's files, with their registry
+    backup.rename(made)
+    registry = tmp_path / "out" / outputs.REGISTRY
+    data = json.loads(registry.read_text())
+    data["entries"]["run"] = {**entry, "ino": made.lstat().st_ino}  # as if the inode came back
+    registry.write_text(json.dumps(data))
+    assert not outputs.made_folder(made)
+    outputs.claim_folder(tmp_path / "out", force=True)
+    assert (made / "a.npy").read_bytes() == b"motion"
+
+
+def test_demo_fresh_clears_only_folders_the_demo_made(tmp_path):
+    """The outside check's B2: a user's folder named like a demo folder (runs/, motions/) keeps its files."""
+    from lsgan.demo import _clear_demo
+
+    _write(tmp_path / "copy" / "a.npy", b"motion")
+    (tmp_path / "copy").rename(tmp_path / "runs")
+    _write(tmp_path / "demo.json", b"{}")
+    _clear_demo(tmp_path)
+    assert (tmp_path / "runs" / "a.npy").read_bytes() == b"motion" and not (tmp_path / "demo.json").exists()
+
+
+def test_a_folder_fingerprint_cannot_be_forged_by_a_file_name(tmp_path):
+    """B4: names holding '|' and a newline do not make one file hash like several."""
+    three, one = tmp_path / "three", tmp_path / "one"
+    three.mkdir()
+    one.mkdir()
+    for name in ("a", "b"):
+        (three / name).write_bytes(b"x")
+    listing = outputs.fingerprint(three)["files"]
+    (one / "|".join(["a", listing["a"] + "\nb", listing["b"]])).write_bytes(b"x")
+    assert outputs.fingerprint(one)["content"] != outputs.fingerprint(three)["content"]
+
+
+def test_an_output_name_too_long_for_its_temporary_is_refused_first(tmp_path):
+    with pytest.raises(outputs.OutputError, match="name too long"):
+        outputs.claim_file(tmp_path / ("b" * 240 + ".h5"))
 
 
 # ------------------------------------------------------------------------------- hostile trees (Hypothesis)
@@ -312,8 +361,8 @@ def _apply(out: Path, op, wrote: set[str]) -> None:
             outputs.clear_ours(out)
         elif kind == "sweep":
             outputs.sweep_temps(out)
-        else:
-            outputs.remove(path)
+        else:  # lsgan removes in the folder it was told to write, not inside what it finds there
+            outputs.remove(out / name.split("/")[0])
     except outputs.OutputError as e:
         assert str(e).startswith(str(out)), e  # one line naming the path
 

@@ -525,6 +525,13 @@ def _unwritten_chunks(w: Path, run: Path) -> list:
     return ["train-vae", "--data", "bad.h5", "--recipe", run / "tiny0.yaml", "--out", "vae"]
 
 
+def _zero_chunks(f: h5py.File, w: Path) -> None:  # 300,000 rows of stored zeros: 316 MB from a few hundred KB
+    rows = f["features"].shape[0]
+    f["features"].resize(300_000, axis=0)
+    for start in range(rows, 300_000, 50_000):
+        f["features"][start:start + 50_000] = 0
+
+
 def _rows_beyond_clips(f: h5py.File, w: Path) -> None:  # every chunk written (zeros), 100,000 rows no clip uses
     rows = f["features"].shape[0]
     f["features"].resize(100_000, axis=0)
@@ -629,6 +636,7 @@ HOSTILE = {
     "bvh-bom-cr-reads": (lambda w, r: _bvh(w, lambda t: b"\xef\xbb\xbf" + t.replace("\n", "\r").encode()), 0, ""),
     "hdf5-unwritten-chunks": (_unwritten_chunks, 1, "refused: dataset features declares (32000000, 263) items, "
                               "33,664,000,000 bytes, but stores only 2 of its 31,250 chunks"),
+    "hdf5-stored-zero-chunks": (lambda w, r: _shard_copy(w, r, _zero_chunks), 1, "stored bytes inflate to at most"),
     "features-beyond-clips": (lambda w, r: _shard_copy(w, r, _rows_beyond_clips), 1,
                               "features declares 100,000 rows but its clips use"),
     "hdf5-shared-strings": (lambda w, r: _shared_strings(w, r, chunked=False), 1,

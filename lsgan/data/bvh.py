@@ -176,6 +176,9 @@ def _parse_hierarchy(path: str, header: str) -> tuple[list[str], list[int], list
     return h.names, h.parents, h.offsets, h.channels, h.end_sites
 
 
+MAX_JOINTS = 4096  # joints in one hierarchy: character-creator rigs with every twist and finger bone have a few hundred
+
+
 class _Hierarchy:
     """What a HIERARCHY section has declared so far, read one keyword at a time (one method per keyword)."""
 
@@ -229,6 +232,8 @@ class _Hierarchy:
             raise self.fail("JOINT outside any ROOT")
         if self.stack and self.stack[-1] < 0:
             raise self.fail("JOINT inside an End Site")
+        if len(self.names) >= MAX_JOINTS:
+            raise self.fail(f"more than {MAX_JOINTS:,} joints: not a character's skeleton")
         self.names.append(" ".join(rest))
         self.parents.append(self.stack[-1] if self.stack else -1)
         self.offsets.append([0.0, 0.0, 0.0])

@@ -170,6 +170,12 @@ MIXAMO = JointMap(
 PRESETS: dict[str, JointMap] = {"bandai": BANDAI, "cmu": CMU, "mixamo": MIXAMO}
 
 
+
+def _few(names: list[str], most: int = 30) -> str:
+    """A list of names for a message, cut after ``most`` (a hostile file may declare a million joints)."""
+    shown = ", ".join(repr(n[:64]) for n in names[:most])
+    return f"[{shown}{f', ... {len(names) - most:,} more' if len(names) > most else ''}]"
+
 def _parse_spec(smpl: str, spec: object, where: str) -> JointSpec:
     if isinstance(spec, str):
         return spec
@@ -244,8 +250,8 @@ def map_indices(jmap: JointMap, names: tuple[str, ...], source: str = "") -> tup
     missing = [n for n, i in lookup.items() if i is None]
     if missing:
         raise ClipError(
-            f"{source}: unmapped skeleton: joint map {jmap.name!r} needs joints {missing} that the file lacks "
-            f"(it has {list(names)})"
+            f"{source}: unmapped skeleton: joint map {jmap.name!r} needs joints {_few(missing)} that the file lacks "
+            f"(it has {_few(list(names))})"
         )
     a = np.empty(len(JOINT_NAMES), dtype=np.int64)
     b = np.empty(len(JOINT_NAMES), dtype=np.int64)

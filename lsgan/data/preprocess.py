@@ -267,9 +267,9 @@ def _plan(source, items: list[str], chunk_size: int, options: dict) -> _Plan:
 def _open_staging(staging: Path, manifest: dict, keep: set[str]) -> None:
     """Make the staging folder, keeping only the finished chunks named in ``keep``."""
     if staging.exists():
-        if not staging.is_dir() or not (staging / "manifest.json").is_file():
-            raise PreprocessError(f"{staging}: exists and is not lsgan's staging folder (no manifest.json); "
-                                  "move it away")
+        if not outputs.made_folder(staging) or not outputs.is_ours(staging / "manifest.json"):
+            raise PreprocessError(f"{staging}: exists and is not a staging folder lsgan made (or its manifest.json "
+                                  "was changed); move it away")
         outputs.sweep_temps(staging)
         for p in staging.glob("chunk_*.npz"):
             if p.name not in keep and outputs.is_ours(p):

@@ -75,6 +75,12 @@ more than the file's size, so the file cannot bound it. About 10x the largest da
 AMASS (some 40 hours, 2.9 M frames at 20 fps), mirrored, is 5.8 M frames of 263 float32, about 6 GB of
 features. Any other dataset may declare at most the file's size."""
 
+CONTENT_MAX_RATIO = 64
+"""The most a compressed dataset of a shard or latent cache may declare over what it stores: lsgan's own files
+compress 1.2-2x (motion features at gzip level 1 with shuffle: 1.57x on synthetic clips, less on mocap, whose
+noise does not compress); 64x leaves room for long still takes and refuses chunks of zeros that deflate would
+inflate 1032x (a 6 MB file asking for 6 GB of memory)."""
+
 FILTER_MAX_RATIO = {h5py.h5z.FILTER_DEFLATE: DEFLATE_MAX_RATIO, h5py.h5z.FILTER_LZF: 88, h5py.h5z.FILTER_SHUFFLE: 1,
                     h5py.h5z.FILTER_FLETCHER32: 1}
 """The most each HDF5 filter can shrink data: deflate (gzip) 1032x, its format's limit; LZF 88x (a back reference
@@ -224,7 +230,8 @@ def _chunks_problem(ds: h5py.Dataset, declared: int) -> str | None:
     plist = ds.id.get_create_plist()
     filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]  # (code, flags, options, name)
     stored_bytes = ds.id.get_storage_size()
-    capacity = stored_bytes * math.prod(FILTER_MAX_RATIO.get(f[0], 1) for f in filters)
+    ratio = min(math.prod(FILTER_MAX_RATIO.get(f[0], 1) for f in filters), CONTENT_MAX_RATIO) if filters else 1
+    capacity = stored_bytes * ratio
     if declared > capacity:
         names = ", ".join(f[3].decode("ascii", "replace") or str(f[0]) for f in filters) or "none"
         return f"its {stored_bytes:,} stored bytes inflate to at most {capacity:,} (filters: {names})"

@@ -87,14 +87,11 @@ def body_model_candidates(body_models: str, gender: str) -> list[str]:
 
 def missing_model_message(body_models: str, genders: tuple[str, ...] = ("male", "female")) -> str:
     """What files are expected where, for an error about a missing body model."""
-    lines = [f"no SMPL-H body model found under {body_models!r} for gender(s) {', '.join(genders)}; expected one of:"]
-    for g in genders:
-        lines += [f"  {c}" for c in body_model_candidates(body_models, g)]
-    lines.append(
-        "(AMASS/HumanML3D layout: the MANO 'Extended SMPL+H model' unpacked as <dir>/{male,female}/model.npz; "
-        "smplx layout: <dir>/smplh/SMPLH_{MALE,FEMALE}.pkl made by smplx's tools/merge_smplh_mano.py)"
-    )
-    return "\n".join(lines)
+    expected = [c for g in genders for c in body_model_candidates(body_models, g)]
+    return (f"{body_models}: no SMPL-H body model for gender(s) {', '.join(genders)} (expected one of "
+            f"{', '.join(expected)}; AMASS/HumanML3D layout: the MANO 'Extended SMPL+H model' unpacked as "
+            "<dir>/{male,female}/model.npz; smplx layout: <dir>/smplh/SMPLH_{MALE,FEMALE}.pkl made by smplx's "
+            "tools/merge_smplh_mano.py)")
 
 
 def find_body_model(body_models: str, gender: str) -> str:
