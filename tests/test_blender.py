@@ -110,6 +110,19 @@ def test_blender_plays_the_whole_motion_at_its_speed(motion, tmp_path, fmt, fps,
         assert bad["keys"][1] == pytest.approx((frames - 1) / fps * 24, abs=1e-3)
 
 
+@pytest.mark.parametrize("fps", [12.5, 29.97])
+def test_a_glb_at_a_fractional_rate_plays_at_its_speed(motion, tmp_path, fps):
+    """The outside check's case: Blender's glTF importer puts a key at t x fps x fps_base, so the printed whole rate
+    (base 1) and end frame make the scene end on the last key, at the motion's own time."""
+    np.save(tmp_path / "m_joints.npy", np.load(motion)[:120])
+    run = subprocess.run([sys.executable, "-m", "lsgan.cli", "export", "--glb", str(tmp_path / "m_joints.npy"),
+                          "--fps", str(fps), "-o", str(tmp_path / "m.glb")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    good = _blender("glb", tmp_path / "m.glb", fps, 120)["settings"]
+    assert good["keys"][1] == pytest.approx(good["end"], abs=0.5)  # the scene ends on the last key
+    assert good["keys"][1] / good["rate"] == pytest.approx(119 / fps, abs=1e-3)  # at the motion's own time
+
+
 def test_update_scene_duration_never_shortens(motion, tmp_path):
     """Why the printed settings name the end frame: a 131-frame BVH imported with both 'Update Scene' boxes ticked
     and no more still plays over frames 1-250."""

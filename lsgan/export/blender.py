@@ -23,11 +23,14 @@ class SceneSettings:
 
 
 def scene_settings(fmt: str, fps: float, frames: int) -> SceneSettings:
-    """For a ``fmt`` ("bvh" or "glb") file of ``frames`` frames at ``fps``: the BVH importer keys frames
-    1..T, the glTF importer puts the key at t seconds on frame t * scene rate, so 0..T-1 at the motion's rate."""
+    """For a ``fmt`` ("bvh" or "glb") file of ``frames`` frames at ``fps``: the BVH importer keys frames 1..T,
+    played at fps through a fractional base; the glTF importer puts the key at t seconds on frame t x (fps x
+    fps_base), so a GLB wants a whole rate with base 1 (measured: at 12 / base 0.96 a 12.5 fps motion played 8%
+    fast) and ends on the frame of its last key."""
     rate = max(1, round(fps))
-    start = 1 if fmt == "bvh" else 0
-    return SceneSettings(rate, rate / fps, start, start + frames - 1)
+    if fmt == "bvh":
+        return SceneSettings(rate, rate / fps, 1, frames)
+    return SceneSettings(rate, 1.0, 0, round((frames - 1) * rate / fps))
 
 
 def blender_hint(fmt: str, fps: float, frames: int, scale: float = 0.01) -> str:

@@ -266,10 +266,12 @@ def write_bvh(path: str | Path, joints: np.ndarray, *, fps: float = 20.0,
 
 
 def load_motion_joints(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
-    """(name, joints (T,22,3)) pairs from a joints .npy, a features .npy (T,263), or a ``generate`` folder."""
+    """(name, joints (T,22,3)) pairs from a joints .npy, a features .npy (T,263), or a ``generate`` folder. The
+    joints of features are recovered and made rigid as ``generate`` makes its motion of record."""
     from lsgan.data.clip import load_npy
     from lsgan.data.features import recover_from_ric
     from lsgan.data.skeleton import FEATURE_DIM
+    from lsgan.export.rigid import make_rigid
 
     path = Path(path)
     if path.is_dir():
@@ -281,7 +283,8 @@ def load_motion_joints(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
     if array.ndim == 3 and array.shape[1:] == (NUM_JOINTS, 3):
         joints = array.astype(np.float32)
     elif array.ndim == 2 and array.shape[1] == FEATURE_DIM:
-        joints = recover_from_ric(array.astype(np.float32)) if len(array) else array.reshape(0, NUM_JOINTS, 3)
+        joints = make_rigid(recover_from_ric(array.astype(np.float32))) if len(array) else \
+            array.reshape(0, NUM_JOINTS, 3)
     else:
         raise ValueError(f"{path}: expected joints (T, 22, 3) or features (T, 263), got an array of shape "
                          f"{array.shape}")
