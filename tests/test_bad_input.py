@@ -708,7 +708,8 @@ def test_staging_cleanup_keeps_files_lsgan_did_not_write(tmp_path: Path) -> None
     mine.write_bytes(b"the user's own file")
     preprocess(SyntheticSource(num_clips=40), tmp_path / "s.h5", resume=True)
     assert mine.read_bytes() == b"the user's own file"
-    assert sorted(p.name for p in mine.parent.iterdir()) == ["chunk_mine.npz"]  # ours gone, and their record
+    assert sorted(p.name for p in mine.parent.iterdir()) == [".lsgan-outputs.json", "chunk_mine.npz"]  # ours gone
+    assert json.loads((mine.parent / ".lsgan-outputs.json").read_text())["entries"] == {}  # the folder's id only
 
 
 def test_force_keeps_a_last_folder_lsgan_did_not_write(tmp_path: Path) -> None:
