@@ -283,6 +283,24 @@ def test_a_folder_fingerprint_cannot_be_forged_by_a_file_name(tmp_path):
     assert outputs.fingerprint(one)["content"] != outputs.fingerprint(three)["content"]
 
 
+def test_a_forged_file_listing_removes_nothing_outside_its_folder(tmp_path):
+    """clear_path deletes a whole-written folder's files only by the names its real listing has: a parent record
+    whose ``files`` name ``../victim`` (with the victim's true hash) touches nothing outside."""
+    out = tmp_path / "out"
+    with atomic_folder(out / "glb") as t:
+        (t / "a.glb").write_bytes(b"glb")
+    (out / "glb" / "mine.txt").write_text("user")  # the folder is no longer exactly lsgan's
+    victim = out / "victim.txt"
+    victim.write_bytes(b"keep")
+    registry = out / outputs.REGISTRY
+    data = json.loads(registry.read_text())
+    data["entries"]["glb"]["files"]["../victim.txt"] = f"file 4 {outputs.file_sha256(victim)}"
+    registry.write_text(json.dumps(data))
+    outputs.clear_path(out / "glb")
+    assert victim.read_bytes() == b"keep" and (out / "glb" / "mine.txt").read_text() == "user"
+    assert not (out / "glb" / "a.glb").exists()
+
+
 def test_an_output_name_too_long_for_its_temporary_is_refused_first(tmp_path):
     with pytest.raises(outputs.OutputError, match="name too long"):
         outputs.claim_file(tmp_path / ("b" * 240 + ".h5"))
