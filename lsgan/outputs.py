@@ -159,27 +159,27 @@ def _made_folder(entry: dict, path: Path) -> bool:
 
 def _folder_id(folder: Path) -> str | None:
     """The id :func:`make_folder` put in the folder's own registry (None if there is none)."""
-    if (folder / REGISTRY).is_symlink():
-        return None
-    try:
-        data = json.loads((folder / REGISTRY).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return data.get("id") if isinstance(data, dict) and isinstance(data.get("id"), str) else None
+    found = _registry_data(folder).get("id")
+    return found if isinstance(found, str) else None
 
 
 # ----------------------------------------------------------------------------------------------- registry
 
 
-def _read_entries(folder: Path) -> dict:
-    """The registry's entries with plain names only; a missing, unreadable or linked registry lists nothing."""
+def _registry_data(folder: Path) -> dict:
+    """The folder's registry as read from its file; {} when missing, unreadable, not an object, or a link."""
     if (folder / REGISTRY).is_symlink():
         return {}
     try:
         data = json.loads((folder / REGISTRY).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
-    entries = data.get("entries") if isinstance(data, dict) else None
+    return data if isinstance(data, dict) else {}
+
+
+def _read_entries(folder: Path) -> dict:
+    """The registry's entries with plain names only; a missing, unreadable or linked registry lists nothing."""
+    entries = _registry_data(folder).get("entries")
     if not isinstance(entries, dict):
         return {}
     return {k: v for k, v in entries.items() if isinstance(k, str) and plain_name(k) and isinstance(v, dict)}
