@@ -14,10 +14,11 @@ tests/gltf_reader.py, and by three.js in Chromium) are the rig BVH's forward kin
 frame, on the Bandai rig and on a synthetic Mixamo-named one (also read as Z-up and left-handed).
 
 Twist and floor (issue 29): on Bandai, CMU and the Mixamo-named rig, each also with every joint's rest frame
-turned at random (its mocap converted to the same world pose), the local axis that faces forward (knees,
-elbows) or down (soles) in the rig's own mocap faces that way in retargeted walks (worst median 5.7 degrees,
-worst frame 18.7; before: up to 179), and the rig's lowest foot joint is at our lowest foot joint's height in
-every contact frame (before: 5-8 cm under the floor on the Mixamo-named rig). Micrometre bones give a GLB with
+turned at random (its mocap converted to the same world pose), and each given its mocap or one frame of it, the
+local axis that faces forward (knees, elbows) or down (soles) in the rig's own mocap faces that way in retargeted
+walks (worst median 5.7 degrees given the mocap, 17.3 given one frame; worst frame 18.7 and 22.5; before: up to
+179), and the rig's lowest foot point (End Sites included) is at our lowest foot joint's height in every contact
+frame (before: 5-8 cm under the floor on the Mixamo-named rig, CMU's toe tips 2-4 cm). Micrometre bones give a GLB with
 no validator message; maps with a wrong up, scale or handedness are warned about on export.
 """
 from __future__ import annotations
@@ -427,6 +428,25 @@ def _rotate_rest_frames(rig, seed: int):
     return replace(rig, offsets=offsets, end_sites=ends, motion=channel_values(local, trans, rig.channels))
 
 
+def _foot_points(bvh, jmap) -> np.ndarray:
+    """Heights (T,) in metres of the lowest of a posed rig's foot joints and the End Sites below them (toe tips)."""
+    from lsgan.data.bvh import local_transforms
+    from lsgan.export.retarget import foot_joints, global_rotations, metres_y_up
+
+    feet = foot_joints(bvh, jmap)
+    pos, rot = forward_kinematics(bvh), global_rotations(bvh.parents, local_transforms(bvh)[0])
+    tips = [pos[:, k] + np.einsum("tij,j->ti", rot[:, k], o) for k, o in bvh.end_sites if k in feet]
+    points = np.concatenate([pos[:, feet]] + [t[:, None] for t in tips], axis=1)
+    return metres_y_up(points, jmap)[..., 1].min(axis=1)
+
+
+def _bind_frame_only(rig):
+    """The rig as a character file carrying one frame of its bind pose: its mocap's first frame alone."""
+    from dataclasses import replace
+
+    return replace(rig, motion=rig.motion[:1])
+
+
 def _twist_rig(case: str, request, tmp_path):
     if case == "bandai":
         return read_bvh(request.getfixturevalue("bandai_dir") / "data" / f"{RIG}.bvh.gz"), get_joint_map("bandai")
@@ -436,22 +456,26 @@ def _twist_rig(case: str, request, tmp_path):
     return read_bvh(tmp_path / "rig.bvh"), MIXAMO
 
 
+@pytest.mark.parametrize("frames", ["mocap", "bind-frame"])
 @pytest.mark.parametrize("turned", [False, True], ids=["own-rest", "random-rest-frames"])
 @pytest.mark.parametrize("case", ["bandai", "cmu", "mixamo"])
-def test_twist_follows_the_rig_convention_and_feet_touch_the_floor(case, turned, request, tmp_path):
-    """A synthetic walk retargeted onto each rig (and onto the same rig with randomly turned rest frames): for
-    every limb bone, the local axis that faces forward (knees, elbows) or down (soles) in the rig's own mocap
-    faces that way in the retargeted walk, within 30 degrees at the median frame and 60 at worst; the rig's
-    lowest foot joint is within 1 cm of the floor in the walk's contact frames."""
+def test_twist_follows_the_rig_convention_and_feet_touch_the_floor(case, turned, frames, request, tmp_path):
+    """A synthetic walk retargeted onto each rig (and onto the same rig with randomly turned rest frames; and each
+    carrying its mocap or only one frame of its bind pose, as a character file does): for every limb bone, the
+    local axis that faces forward (knees, elbows) or down (soles) in the rig's own mocap faces that way in the
+    retargeted walk, within 30 degrees at the median frame and 60 at worst; the rig's lowest foot point (joints
+    and the End Sites at the toe tips) is within 1 cm of the floor in the walk's contact frames."""
     from lsgan.export.feet import estimate_contacts
-    from lsgan.export.retarget import foot_joints, metres_y_up
+    from lsgan.export.retarget import metres_y_up
 
     rig, jmap = _twist_rig(case, request, tmp_path)
     if turned:
         rig = _rotate_rest_frames(rig, seed=7)
         np.testing.assert_allclose(_rig_pose(rig, jmap)[1], _rig_pose(_twist_rig(case, request, tmp_path)[0],
                                                                       jmap)[1], atol=1e-6)
-    axes = _own_axes(rig, jmap)
+    axes = _own_axes(rig, jmap)  # measured on the whole mocap, whatever the retargeting is given
+    if frames == "bind-frame":
+        rig = _bind_frame_only(rig)
     worst = []
     walks = [generate(1, seed=seed, families=["walk"])[0].joints.astype(np.float64) for seed in (0, 1)]
     if case == "bandai":  # and a real walk, through the importer
@@ -466,18 +490,18 @@ def test_twist_follows_the_rig_convention_and_feet_touch_the_floor(case, turned,
                                _unit(walk[:, I(end)] - walk[:, I(start)])))
             angle = np.degrees(np.arccos(np.clip((seen * way).sum(-1), -1, 1)))[ok]
             worst.append((float(np.median(angle)), float(angle.max()), f"{start}->{end}"))
-        feet = metres_y_up(forward_kinematics(out)[:, foot_joints(rig, jmap)], jmap)[..., 1].min(axis=1)
+        feet = _foot_points(out, jmap)
         contact = estimate_contacts(walk.astype(np.float32)).any(axis=1)
         ours = walk[contact][:, [I("left_ankle"), I("right_ankle"), I("left_foot"), I("right_foot")], 1].min(1)
         floor, gap = np.abs(feet[contact]).max(), np.abs(feet[contact] - ours).max()
-        print(f"{case} {'turned' if turned else 'own'} walk {n}: in {contact.sum()} contact frames the rig's lowest "
-              f"foot joint is within {floor * 100:.2f} cm of the floor (ours {np.abs(ours).max() * 100:.2f} cm), "
+        print(f"{case} {'turned' if turned else 'own'} {frames} walk {n}: in {contact.sum()} contact frames the "
+              f"rig's lowest foot point is within {floor * 100:.2f} cm of the floor (ours {np.abs(ours).max() * 100:.2f} cm), "
               f"{gap * 100:.2f} cm of ours")
         assert gap < 0.01
         if n < 2:  # the synthetic walks put our feet on the floor; the real one's joints sit inside its feet
             assert floor < 0.01
     median, peak = max(worst), max(worst, key=lambda w: w[1])
-    print(f"{case} {'turned' if turned else 'own'}: worst median {median[0]:.1f} deg ({median[2]}), worst frame "
+    print(f"{case} {'turned' if turned else 'own'} {frames}: worst median {median[0]:.1f} deg ({median[2]}), worst frame "
           f"{peak[1]:.1f} deg ({peak[2]})")
     assert median[0] < 30 and peak[1] < 60
 
@@ -527,3 +551,42 @@ def test_real_rigs_with_their_presets_warn_nothing(bandai_dir, cmu_dir):
 
     assert map_warnings(read_bvh(bandai_dir / "data" / f"{RIG}.bvh.gz"), get_joint_map("bandai")) == []
     assert map_warnings(read_bvh(cmu_dir / "131_01.bvh"), CMU) == []
+
+
+def _without_frames(text: str) -> str:
+    return text[: text.index("MOTION")] + "MOTION\nFrames: 0\nFrame Time: 0.0333333\n"
+
+
+def test_rig_files_without_frames(bandai_dir, tmp_path, capsys):
+    """A rig file with ``Frames: 0`` (a hierarchy alone) is a rig: a T-pose one retargets exactly as with one
+    zero frame, silently; Bandai's zero pose (legs spread along one line) cannot say where its knees face, so
+    the export says so, naming the file and the fix, and calls nothing a wrong up axis. A clip without frames
+    is still refused, and a 'Frames: 0' header followed by values is a damaged file."""
+    import gzip
+
+    from lsgan.data.clip import ClipError
+
+    _mixamo_rig(tmp_path / "one.bvh")
+    (tmp_path / "none.bvh").write_text(_without_frames((tmp_path / "one.bvh").read_text()))
+    np.save(tmp_path / "m_joints.npy", generate(1, seed=0, families=["walk"])[0].joints)
+    for name in ("one", "none"):
+        export_motions(tmp_path / "m_joints.npy", tmp_path / f"{name}-out.bvh", fmt="bvh",
+                       rig=tmp_path / f"{name}.bvh", preset="mixamo")
+    assert "warning" not in capsys.readouterr().err
+    assert (tmp_path / "one-out.bvh").read_text() == (tmp_path / "none-out.bvh").read_text()
+
+    text = gzip.decompress((bandai_dir / "data" / f"{RIG}.bvh.gz").read_bytes()).decode()
+    (tmp_path / "bandai.bvh").write_text(_without_frames(text))
+    export_motions(tmp_path / "m_joints.npy", tmp_path / "b.bvh", fmt="bvh", rig=tmp_path / "bandai.bvh",
+                   preset="bandai")
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "bandai.bvh: the rig's rest pose (no frames) is not a standing figure" in \
+        warnings[0] and "bind pose" in warnings[0], warnings
+    assert read_bvh(tmp_path / "b.bvh").num_frames == len(np.load(tmp_path / "m_joints.npy"))
+
+    with pytest.raises(ClipError, match="none.bvh: zero frames"):
+        read_bvh(tmp_path / "none.bvh")
+    channels = sum(len(c) for c in read_bvh(tmp_path / "bandai.bvh", rest_only=True).channels)
+    (tmp_path / "lies.bvh").write_text(_without_frames(text) + "0 " * channels)
+    with pytest.raises(ClipError, match="lies.bvh: .*header says 0 frames"):
+        read_bvh(tmp_path / "lies.bvh", rest_only=True)

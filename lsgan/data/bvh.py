@@ -290,11 +290,13 @@ class _Hierarchy:
         return i + 2 + count
 
 
-def _check_header(path: str, frames: int, frame_time: float, channels: int, joints: int, body: int) -> None:
+def _check_header(path: str, frames: int, frame_time: float, channels: int, joints: int, body: int,
+                  rest_only: bool = False) -> None:
     """Refuse a MOTION header that cannot be right before its frames are parsed or allocated: ``body`` bytes
-    of text hold at most (body + 1) // 2 values (a digit and a separator each)."""
-    if frames <= 0:
-        raise ClipError(f"{path}: zero frames")
+    of text hold at most (body + 1) // 2 values (a digit and a separator each). ``rest_only``: zero frames is
+    fine (a rig's file may carry its hierarchy alone)."""
+    if frames < 0 or (frames == 0 and not rest_only):
+        raise ClipError(f"{path}: {'zero' if frames == 0 else 'a negative number of'} frames")
     if not MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME:  # also NaN
         raise ClipError(f"{path}: frame time {frame_time:g} s is outside {MIN_FRAME_TIME:g}-{MAX_FRAME_TIME:g} s "
                         "(10,000 to 1 frames per second): a damaged MOTION header")
@@ -308,8 +310,21 @@ def _check_header(path: str, frames: int, frame_time: float, channels: int, join
                         f"({MAX_JOINT_FRAMES:,}); split the clip")
 
 
-def read_bvh(path: str | Path) -> Bvh:
-    """Parse a ``.bvh`` or gzip-compressed ``.bvh.gz`` file; any problem raises :class:`ClipError` naming the file."""
+def _motion_values(path: str, body: bytes) -> np.ndarray:
+    """The numbers of a MOTION block, flat; none for a blank one (numpy reads whitespace alone as [-1])."""
+    if not body.strip():
+        return np.zeros(0)
+    try:
+        with warnings.catch_warnings():  # numpy < 2 warns (and stops early) where numpy 2 raises
+            warnings.simplefilter("error", DeprecationWarning)
+            return np.fromstring(body.decode("latin-1"), dtype=np.float64, sep=" ")
+    except (ValueError, DeprecationWarning) as exc:
+        raise ClipError(f"{path}: MOTION block holds something other than numbers") from exc
+
+
+def read_bvh(path: str | Path, *, rest_only: bool = False) -> Bvh:
+    """Parse a ``.bvh`` or gzip-compressed ``.bvh.gz`` file; any problem raises :class:`ClipError` naming the file.
+    ``rest_only`` (a rig, whose motion is optional): ``Frames: 0`` reads as a skeleton with no frames."""
     path = str(path)
     data = _read_bytes(path)
     start = re.search(rb"^[ \t]*HIERARCHY\b", data[:65536], re.MULTILINE)
@@ -326,13 +341,8 @@ def read_bvh(path: str | Path) -> Bvh:
         raise ClipError(f"{path}: bad MOTION header: {exc}") from exc
     names, parents, offsets, channels, end_sites = _parse_hierarchy(path, header)
     num_channels = sum(len(c) for c in channels)
-    _check_header(path, num_frames, frame_time, num_channels, len(names), len(data) - motion.end())
-    try:
-        with warnings.catch_warnings():  # numpy < 2 warns (and stops early) where numpy 2 raises
-            warnings.simplefilter("error", DeprecationWarning)
-            values = np.fromstring(data[motion.end() :].decode("latin-1"), dtype=np.float64, sep=" ")
-    except (ValueError, DeprecationWarning) as exc:
-        raise ClipError(f"{path}: MOTION block holds something other than numbers") from exc
+    _check_header(path, num_frames, frame_time, num_channels, len(names), len(data) - motion.end(), rest_only)
+    values = _motion_values(path, data[motion.end() :])
     if values.size % num_channels:
         raise ClipError(
             f"{path}: truncated MOTION block: {values.size} values are not a multiple of the "

@@ -28,6 +28,7 @@ from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 _I = JOINT_NAMES.index
 BENT_DEG = (8.0, 25.0)  # a limb's bend plane counts fully from 25 degrees of bend, not at all below 8
 _SIDES = ("left", "right")
+LEG_TRUNK_DEG, LEGS_APART_DEG = 110.0, 90.0  # a standing layout (standing_frames): every frame of 300 Bandai clips
 
 
 def unit(v: np.ndarray) -> np.ndarray:
@@ -101,6 +102,19 @@ def reference_directions(joints: np.ndarray) -> np.ndarray:
             ref[:, c] = unit(np.cross(hinges[-1], unit(j[:, c] - j[:, b])))
         ref[:, toe] = _sole(unit(j[:, toe] - j[:, ankle]), hinges[0])
     return ref
+
+
+def standing_frames(joints: np.ndarray) -> np.ndarray:
+    """(T,) which frames of joints (T,22,3) are laid out as a person standing (T-pose, A-pose, a walk), whatever
+    way the figure faces or lies: both legs (hip to ankle) point away from the trunk (pelvis to spine3), over
+    ``LEG_TRUNK_DEG`` from it, and within ``LEGS_APART_DEG`` of each other. Only such frames say where a rig's
+    knees and elbows face: a zero pose with the legs spread along one line (Bandai's) says nothing of it."""
+    j = np.asarray(joints, dtype=np.float64)
+    up = unit(j[:, _I("spine3")] - j[:, _I("pelvis")])
+    legs = [unit(j[:, _I(f"{side}_ankle")] - j[:, _I(f"{side}_hip")]) for side in _SIDES]
+    cos_trunk = np.cos(np.radians(LEG_TRUNK_DEG))
+    return ((np.sum(legs[0] * up, -1) < cos_trunk) & (np.sum(legs[1] * up, -1) < cos_trunk)
+            & (np.sum(legs[0] * legs[1], -1) > np.cos(np.radians(LEGS_APART_DEG))))
 
 
 def measure_axes(global_rot: np.ndarray, aims: np.ndarray, refs: np.ndarray) -> np.ndarray:

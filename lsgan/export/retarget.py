@@ -9,7 +9,8 @@ rig joints named directly are *mapped* (``between`` entries only place SMPL join
 - Root: the pelvis joint follows our pelvis trajectory scaled by the ratio of the rig's leg length (hip to
   knee to ankle at rest) to ours, through the position channels of the pelvis joint or of its nearest
   ancestor with all three; the pelvis joint's ancestors keep their rest rotation. It is then raised or lowered
-  so that the rig's lowest foot joint is as high as ours in every frame where one of our feet is in contact
+  so that the rig's lowest foot point (its foot joints and the End Sites below them: a toe's tip) is as high as
+  our lowest foot joint in every frame where one of our feet is in contact
   (:func:`lsgan.export.feet.estimate_contacts`), interpolated between them (:func:`floor_lift`): the rig stands
   on our floor whatever its proportions and wherever its root joint sits.
 - Mapped joints, by IK on directions: the chain of rig joints from a mapped joint to the next mapped joint
@@ -43,7 +44,7 @@ from lsgan.data.bvh import (POSITION_CHANNELS, ROTATION_CHANNELS, Bvh, forward_k
 from lsgan.data.clip import ClipError
 from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices, to_y_up
 from lsgan.data.skeleton import JOINT_NAMES
-from lsgan.export.aim import aim_frames, measure_axes, reference_directions
+from lsgan.export.aim import aim_frames, measure_axes, reference_directions, standing_frames
 from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text, kabsch, shortest_arc
 from lsgan.export.glb import bone_targets, pack_glb, skeleton_document, unit_quats
 from lsgan.io import atomic_file
@@ -152,19 +153,29 @@ def global_rotations(parents: np.ndarray, local: np.ndarray) -> np.ndarray:
     return out
 
 
+def rig_poses(rig: Bvh, jmap: JointMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rig's own poses: global rotations (F,J,3,3), positions (F,J,3, file units) and our joints read from
+    them (F,22,3): its mocap's frames, or its rest pose (F = 1) when the file has none."""
+    if rig.num_frames:
+        rot, pos = global_rotations(rig.parents, local_transforms(rig)[0]), forward_kinematics(rig)
+    else:
+        rot, pos = np.eye(3)[None, None].repeat(len(rig.names), 1), rest_positions(rig.parents, rig.offsets)[None]
+    return rot, pos, apply_joint_map(pos, rig.names, jmap, rig.path)
+
+
 def rig_axes(rig: Bvh, jmap: JointMap, smpl_of: dict, aims: dict) -> dict[int, np.ndarray]:
     """The rig's own twist convention: for each joint turning the last link of a chain (see :class:`Plan`), the
-    local axis that the rig's mocap (its rest pose when the file has no frames) turns towards the reference
-    direction of the SMPL bone it drives (:func:`lsgan.export.aim.measure_axes`)."""
+    local axis that the rig's poses (:func:`rig_poses`), those where it stands (:func:`standing_frames`; all when
+    none does, which :func:`map_warnings` reports), turn towards the reference direction of the SMPL bone it
+    drives (:func:`lsgan.export.aim.measure_axes`)."""
     twisted = [(c, smpl_of[a[0][0]], a[0][1]) for c, a in aims.items() if len(a) == 1 and a[0][2] == 1]
     if not twisted:
         return {}
-    if rig.num_frames:
-        rotations, _ = local_transforms(rig)
-        rot, pos = global_rotations(rig.parents, rotations), forward_kinematics(rig)
-    else:
-        rot, pos = np.eye(3)[None, None].repeat(len(rig.names), 1), rest_positions(rig.parents, rig.offsets)[None]
-    refs = rig_frame(reference_directions(apply_joint_map(pos, rig.names, jmap, rig.path)), jmap)
+    rot, _, j = rig_poses(rig, jmap)
+    standing = standing_frames(j)
+    if standing.any():
+        rot, j = rot[standing], j[standing]
+    refs = rig_frame(reference_directions(j), jmap)
     joints, ends, rest = zip(*twisted)
     axes = measure_axes(rot[:, list(joints)], np.array(rest), refs[:, list(ends)])
     return dict(zip(joints, axes))
@@ -222,8 +233,20 @@ def foot_joints(rig: Bvh, jmap: JointMap) -> list[int]:
     return sorted(feet)
 
 
+def foot_points(rig: Bvh, jmap: JointMap, local: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Positions (T,P,3, file units) of the rig's foot joints (:func:`foot_joints`) and of the End Sites below
+    them (a toe's tip), posed by local rotations ``local`` (T,J,3,3) at joint positions ``pos`` (T,J,3)."""
+    feet = foot_joints(rig, jmap)
+    ends = [(k, np.asarray(o, dtype=np.float64)) for k, o in rig.end_sites if k in feet]
+    if not ends:
+        return pos[:, feet]
+    rot = global_rotations(rig.parents, local)
+    tips = [pos[:, k] + rot[:, k] @ o for k, o in ends]
+    return np.concatenate([pos[:, feet], np.stack(tips, axis=1)], axis=1)
+
+
 def floor_lift(j: np.ndarray, feet: np.ndarray) -> np.ndarray:
-    """Heights (T,) to raise the rig by so that its lowest foot joint, ``feet`` (T,F,3: our frame, metres), is as
+    """Heights (T,) to raise the rig by so that its lowest foot point, ``feet`` (T,F,3: our frame, metres), is as
     high as our lowest foot joint in every frame where one of ours is in contact (estimated from ``j`` (T,22,3)),
     interpolated between those frames (the median difference throughout when ours never touches down)."""
     from lsgan.export.feet import estimate_contacts
@@ -246,7 +269,7 @@ def _solved(j: np.ndarray, rig: Bvh, jmap: JointMap) -> tuple[Plan, np.ndarray, 
     scale = leg_length(rest) / ours
     refs = rig_frame(reference_directions(j), jmap)
     local, trans, pos = solve(rig_frame(j, jmap), refs, rig_frame(j[:, 0] * scale, jmap), rig, plan)
-    lift = floor_lift(j, metres_y_up(pos[:, foot_joints(rig, jmap)], jmap))
+    lift = floor_lift(j, metres_y_up(foot_points(rig, jmap, local, pos), jmap))
     trans[:, plan.carrier] += rig_frame(lift[:, None] * np.array([0.0, 1.0, 0.0]), jmap)
     return plan, local, trans
 
@@ -295,19 +318,25 @@ def mirrored_fraction(j: np.ndarray) -> float:
 
 
 def map_warnings(rig: Bvh, jmap: JointMap) -> list[str]:
-    """Warnings (empty: plausible) for a joint map that would write a lying, giant or tiny, or mirrored character
-    onto ``rig``: the rig's own frames (its rest pose if it has none) read through the map, checked as imports are
-    (:mod:`lsgan.data.plausibility`: size, up axis) and for mirroring, each naming the map and the likely cause."""
+    """Warnings (empty: plausible) for a rig and joint map that would write a lying, giant or tiny, mirrored or
+    twisted character: the rig's own poses (:func:`rig_poses`) read through the map, checked as imports are
+    (:mod:`lsgan.data.plausibility`: size, up axis) and for mirroring, each naming the map and the likely cause;
+    poses that never stand (:func:`standing_frames`) cannot say which way is up, nor where the knees face."""
     from lsgan.data.plausibility import clip_checks, findings
 
-    pos = forward_kinematics(rig) if rig.num_frames else rest_positions(rig.parents, rig.offsets)[None]
-    j = apply_joint_map(pos, rig.names, jmap, rig.path)
+    j = rig_poses(rig, jmap)[2]
     where = f"{rig.path}: joint map {jmap.name!r}"
+    standing = standing_frames(j).any()
     found = [(kind, text) for kind, text in findings(clip_checks(j)) if kind in ("scale", "up")]
     out = [f"{where} would write a {'lying' if kind == 'up' else 'wrongly sized'} character: {text}"
-           for kind, text in found]
+           for kind, text in found if standing or kind == "scale"]
+    if not standing:
+        poses = "none of the rig's frames shows" if rig.num_frames else "the rig's rest pose (no frames) is not"
+        out.append(f"{rig.path}: {poses} a standing figure (legs below the trunk, side by side), so where its "
+                   "knees and elbows face cannot be read and a skinned character may get twisted limbs: add a frame "
+                   "of its bind pose (a T-pose) or some of its own mocap to the rig file")
     mirrored = mirrored_fraction(j)
-    if not found and mirrored >= MIRRORED_FRACTION:
+    if standing and not found and mirrored >= MIRRORED_FRACTION:
         out.append(f"{where} would write a mirrored character: the left hip is on the body's right in "
                    f"{100 * mirrored:.0f}% of the rig's frames: wrong `handedness` in the joint map?")
     return out
@@ -323,7 +352,7 @@ def load_rig(path: str | Path) -> Bvh:
     """Read a rig BVH; a missing or malformed file raises ClipError naming it."""
     if not Path(path).is_file():
         raise ClipError(f"{path}: no such rig file")
-    return read_bvh(path)
+    return read_bvh(path, rest_only=True)
 
 
 def write_rig_glb(path: str | Path, joints: np.ndarray, rig: Bvh, jmap: JointMap, *, fps: float = 20.0) -> Path:
