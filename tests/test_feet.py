@@ -76,6 +76,8 @@ def check_fixed(joints: np.ndarray, fixed: np.ndarray, contacts: np.ndarray) -> 
         limit = np.maximum(REACH * legs, np.linalg.norm(joints[:, ankle] - joints[:, hip], axis=-1))
         assert (np.linalg.norm(fixed[:, ankle] - fixed[:, hip], axis=-1) <= limit + 1e-5).all()
     assert np.array_equal(fix_feet(joints, contacts), fixed)  # deterministic
+    if foot_skating_ratio(joints) == 0.0:  # clean by the field's rule: every stance is left, so nothing changes
+        assert np.array_equal(fixed, joints)
     checked = 0
     spans = held_spans(joints, contacts)
     for k, joint in enumerate(CHANNEL_JOINTS):
@@ -143,7 +145,8 @@ def test_feet_take_turns() -> None:
 @pytest.mark.parametrize("clip", ["dataset-2_walk_normal_001", "dataset-2_walk-turn-left_normal_001"])
 def test_real_bandai_walk(bandai_dir, clip: str) -> None:
     """A real walk (Bandai mocap through the importer and the features) already plants its feet: the fix stays
-    close to it (legs within 2 cm on average, GMD's ratio about the same) and still removes most of its slides."""
+    close to it (legs within 2 cm on average, GMD's ratio about the same) and adds no slide (its stances that GMD's
+    rule counts as clean, slow slides included, are left as they are)."""
     path = bandai_dir / "data" / f"{clip}.bvh.gz"
     features = joints_to_features(BvhSource(root=str(path), preset="bandai", mirror=False).load(str(path))[0].joints)
     joints = recover_from_ric(features.astype(np.float64)).astype(np.float32)
@@ -152,7 +155,7 @@ def test_real_bandai_walk(bandai_dir, clip: str) -> None:
     check_fixed(joints, fixed, contacts)
     assert np.linalg.norm(fixed[:, list(LEG_JOINTS)] - joints[:, list(LEG_JOINTS)], axis=-1).mean() < 0.02
     assert foot_skating_ratio(fixed) < foot_skating_ratio(joints) + 0.03
-    assert floor_travel(fixed, contacts)[0] < 0.5 * floor_travel(joints, contacts)[0]
+    assert floor_travel(fixed, contacts)[0] <= floor_travel(joints, contacts)[0] + 1e-6
 
 
 def gait(seed: int, kind: str, direction: str, speed: str, frames: int) -> tuple[np.ndarray, np.ndarray]:

@@ -59,12 +59,16 @@ def _feet(x: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return height, speed, contact
 
 
-def foot_skating_ratio(joints: np.ndarray, fps: float = FPS) -> np.ndarray:
-    """Share of frame pairs in which a foot on the ground slides (GMD's skating ratio; module docstring). (...,)"""
+def skating_pairs(joints: np.ndarray, fps: float = FPS) -> np.ndarray:
+    """Which foot (toes 10, 11) skates between frames t and t+1 by GMD's rule (module docstring). (..., T-1, 2)"""
     _, speed, contact = _feet(_check(joints, 2), fps)
     window = uniform_filter1d(speed, size=SKATE_WINDOW, axis=-2, mode="constant", origin=0)  # (..., T-1, 2)
-    skating = contact & (speed > SKATE_SPEED) & (window > SKATE_SPEED)  # (..., T-1, 2)
-    return skating.any(axis=-1).mean(axis=-1)
+    return contact & (speed > SKATE_SPEED) & (window > SKATE_SPEED)
+
+
+def foot_skating_ratio(joints: np.ndarray, fps: float = FPS) -> np.ndarray:
+    """Share of frame pairs in which a foot on the ground slides (GMD's skating ratio; module docstring). (...,)"""
+    return skating_pairs(joints, fps).any(axis=-1).mean(axis=-1)
 
 
 def ground_penetration(joints: np.ndarray) -> np.ndarray:

@@ -14,7 +14,10 @@ or, in a run or sprint, less than ``STANCE_RATIO`` times the root (a foot glidin
 contact, one swinging past it is not); gaps of up to ``GAP_FRAMES`` frames are bridged.
 
 Plants and steps (per side, planned over the whole clip). A stance run whose toe stays within ``STILL_TOE`` of
-where it rests (on the frames it is on the floor) is planted already and left as it is. Any other starts with a
+where it rests (on the frames it is on the floor) is planted already and left as it is, and so is one whose toe
+never skates by GMD's rule (:func:`lsgan.eval.quality.skating_pairs`: under 5 cm and faster than 2.5 cm a frame):
+feet the field counts as clean stay clean, a glide slower than that included (steps under 5 cm would count as
+skating, and steps higher than that to carry a slow glide would look like marching). Any other starts with a
 plant where the toe comes down and to rest within ``ENTRY_FRAMES`` (the foot eases onto it), lifted onto the
 floor. A plant holds the toe on its anchor and the ankle on its anchor at the frame's foot length; the heel turns
 up about the toe (push-off) as far as the original's does where its ankle is off the ground, and as far as the leg
@@ -51,6 +54,7 @@ import numpy as np
 from lsgan.data.features import FOOT_CONTACT, foot_contacts
 from lsgan.data.kinematics import facing_across, forward_from_across
 from lsgan.data.skeleton import FACE_JOINTS, NUM_JOINTS
+from lsgan.eval.quality import skating_pairs
 
 CHANNEL_JOINTS = (7, 10, 8, 11)  # the contact channels' joints: left ankle, left foot, right ankle, right foot
 SIDES = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot joint of the left and right leg
@@ -154,11 +158,13 @@ def swing_frames(distance: float) -> int:
 class _Leg:
     """One leg's original joints (float64) and lengths, and the geometry of a planted foot."""
 
-    def __init__(self, j: np.ndarray, side: tuple[int, int, int, int], heel_up: np.ndarray, floor: float | None):
+    def __init__(self, j: np.ndarray, side: tuple[int, int, int, int], heel_up: np.ndarray, floor: float | None,
+                 skates: np.ndarray):
         self.H, self.K, self.A, self.F = (j[:, k].astype(np.float64) for k in side)
         self.foot = np.linalg.norm(self.F - self.A, axis=-1)
         self.pitch = np.arcsin(np.clip((self.A - self.F)[:, 1] / np.maximum(self.foot, 1e-12), -1.0, 1.0))
         self.heel_up = heel_up  # (T,) frames whose ankle is off the ground: a plant follows the original's heel
+        self.skates = skates  # (T-1,) frame pairs where the toe skates by GMD's rule (lsgan.eval.quality)
         legs = np.linalg.norm(self.K - self.H, axis=-1) + np.linalg.norm(self.A - self.K, axis=-1)
         self.reach = np.maximum(REACH * legs, np.linalg.norm(self.A - self.H, axis=-1))
         self.floor = floor
@@ -171,6 +177,11 @@ class _Leg:
         toe = self.F[first: last + 1]
         low = toe[:, 1] - self.F[:, 1].min() < STILL_LOW
         return bool((_flat(toe - self.F[first])[low] < STILL_TOE).all())
+
+    def clean(self, first: int, last: int) -> bool:
+        """Whether the toe skates by GMD's rule on no frame pair from ``first - 1`` to ``last``: a foot the field
+        counts as clean (a glide slower than 0.5 m/s included), whose stance is left as it is."""
+        return not self.skates[max(first - 1, 0): last + 1].any()
 
     def swing(self, distance: float) -> int:
         """Frames in the air of a step of ``distance`` m: Bandai's (:func:`swing_frames`), or more where the toe
@@ -301,7 +312,7 @@ def _plan(leg: _Leg, stance: np.ndarray, busy: np.ndarray) -> tuple[list, list[_
     t, anchor, entry = enter(next_stance(0))
     while t is not None:
         stop = run_end[t]
-        if leg.still(t, stop):  # planted already: left as it is
+        if leg.still(t, stop) or leg.clean(t, stop):  # planted already, or clean by the field's rule: as it is
             t, anchor, entry = enter(next_stance(stop + 1))
             continue
         last = int(leg.plant_ends(np.array([t]), stop, anchor[0][None], anchor[1][None])[0])
@@ -474,8 +485,9 @@ def _solve(joints: np.ndarray, contacts: np.ndarray, floor: float | None):
     stance = stance_frames(j, c)
     out, spans, busy = j.copy(), [], np.zeros(len(j), dtype=bool)
     heel_up = ~ground_contacts(j, c)[:, [0, 2]]
+    skates = skating_pairs(j) if len(j) > 1 else np.zeros((0, 2), dtype=bool)
     for s, side in enumerate(SIDES):
-        leg = _Leg(j, side, heel_up[:, s], floor)
+        leg = _Leg(j, side, heel_up[:, s], floor, skates[:, s])
         plants, moves = _plan(leg, stance[:, s], busy)
         A_new, F_new, moved, held = _render(leg, plants, moves)
         for m in moves:

@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -26,6 +26,7 @@ from lsgan.serve.engine import Engine, Item, Result
 from lsgan.serve.files import FORMATS, download_name, export_bytes, static_bytes
 from lsgan.serve.jsonfmt import joints_json
 from lsgan.serve.limits import Limits
+from lsgan.serve.middleware import BodyLimit, HeadAsGet, HostCheck, error
 from lsgan.serve.schemas import ErrorOut, GenerateRequest, GenerateResponse, Health, Info
 from lsgan.serve.store import MotionStore, Stored
 
@@ -40,52 +41,6 @@ def clip(text: str, limit: int = 80) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
-def error(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
-    return JSONResponse({"error": message}, status_code=status, headers=headers)
-
-
-class BodyLimit:
-    """ASGI middleware: a body over ``max_bytes`` (by its Content-Length, or as it streams in) gets 413 before the
-    app reads any of it; otherwise the app reads the buffered body."""
-
-    def __init__(self, app, max_bytes: int) -> None:
-        self.app, self.max_bytes = app, max_bytes
-
-    async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-
-        async def send_nosniff(message) -> None:
-            if message["type"] == "http.response.start":
-                message["headers"] = [*message.get("headers", []), (b"x-content-type-options", b"nosniff")]
-            await send(message)
-
-        too_big = f"request body over {self.max_bytes} bytes (the limit)"
-        length = dict(scope["headers"]).get(b"content-length", b"").decode("latin-1")
-        if length.isdigit() and int(length) > self.max_bytes:
-            return await error(413, too_big)(scope, receive, send_nosniff)
-        chunks, size, more = [], 0, True
-        while more:
-            message = await receive()
-            if message["type"] == "http.disconnect":
-                return None
-            chunks.append(message.get("body", b""))
-            size += len(chunks[-1])
-            more = message.get("more_body", False)
-            if size > self.max_bytes:
-                return await error(413, too_big)(scope, receive, send_nosniff)
-        body, sent = b"".join(chunks), False
-
-        async def replay():
-            nonlocal sent
-            if sent:
-                return await receive()
-            sent = True
-            return {"type": "http.request", "body": body, "more_body": False}
-
-        await self.app(scope, replay, send_nosniff)
-
-
 def add_error_handlers(app: FastAPI) -> None:
     """Every error as ``{"error": one line}``."""
 
@@ -96,6 +51,9 @@ def add_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
         if exc.status_code == 404:
+            target = without_slash(request)
+            if target is not None:  # a path, never the client's Host: the redirect stays on this server
+                return error(308, f"no such route; it is {clip(target)}", {"Location": target})
             message = f"no such route: {request.method} {clip(request.url.path)}"
         elif exc.status_code == 405:
             message = f"method {request.method} not allowed on {clip(request.url.path)}"
@@ -115,22 +73,49 @@ def add_error_handlers(app: FastAPI) -> None:
         return error(500, f"internal error ({type(exc).__name__}); the server logged it")
 
 
-def key_check(api_key: str | None):
-    """A dependency: /v1 needs ``Authorization: Bearer KEY`` or ``X-API-Key: KEY`` when the server has a key.
+def without_slash(request: Request) -> str | None:
+    """The path and query of ``request`` without its trailing slashes, where a route answers that path."""
+    from starlette.routing import Match
+
+    path = request.url.path
+    if len(path) < 2 or not path.endswith("/"):
+        return None
+    bare = path.rstrip("/") or "/"
+    if not bare.startswith("/") or bare.startswith("//"):
+        return None
+    scope = {**request.scope, "path": bare}
+    if not any(route.matches(scope)[0] == Match.FULL for route in request.app.router.routes):
+        return None
+    query = request.url.query
+    return bare + (f"?{query}" if query else "")
+
+
+def key_check(api_key: str):
+    """A dependency: /v1 needs ``Authorization: Bearer KEY`` or ``X-API-Key: KEY``. Every key offered is
+    compared (in constant time), so an empty or malformed header beside a correct one does not hide it; the two
+    security schemes are declared in the OpenAPI schema, so /docs can send the key.
 
     A coroutine, though it awaits nothing: FastAPI runs a plain function dependency in a worker thread, a thread
     switch per request for a few dictionary lookups."""
-    async def check(request: Request) -> None:
-        if api_key is None:
-            return
-        given = request.headers.get("x-api-key")
-        auth = request.headers.get("authorization", "")
-        if given is None and auth[:7].lower() == "bearer ":
-            given = auth[7:].strip()
-        if given is None:
+    from fastapi import Security
+    from fastapi.security import APIKeyHeader, HTTPBearer
+
+    header = APIKeyHeader(name="X-API-Key", auto_error=False, description="the server's API key")
+    bearer = HTTPBearer(auto_error=False, description="the server's API key as a bearer token")
+    expected = api_key.encode("ascii")
+
+    async def check(request: Request, _h=Security(header), _b=Security(bearer)) -> None:
+        offered = [v.strip() for v in request.headers.getlist("x-api-key")]
+        for auth in request.headers.getlist("authorization"):
+            scheme, _, token = auth.strip().partition(" ")
+            if scheme.lower() == "bearer":
+                offered.append(token.strip())
+        offered = [v for v in offered if v]
+        if not offered:
             raise ApiError(401, "this server needs an API key: send Authorization: Bearer KEY (or X-API-Key: KEY)",
                            {"WWW-Authenticate": "Bearer"})
-        if not secrets.compare_digest(given.encode("utf-8", "replace"), api_key.encode("utf-8")):
+        matches = [secrets.compare_digest(v.encode("utf-8", "replace"), expected) for v in offered]
+        if not any(matches):
             raise ApiError(401, "wrong API key", {"WWW-Authenticate": "Bearer"})
     return check
 
@@ -148,9 +133,10 @@ def info_of(engine: Engine, limits: Limits, auth: bool) -> dict:
     }
 
 
-def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = None) -> FastAPI:
+def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = None,
+               hosts: frozenset[str] | None = None) -> FastAPI:
     """The API over one engine or several alike (passes side by side): the batcher and store start with the app
-    and stop (draining) with it."""
+    and stop (draining) with it. ``hosts``: the Host names served (None: any; :func:`middleware.served_hosts`)."""
     from contextlib import asynccontextmanager
 
     engine = engines[0]  # what the API says of the model
@@ -167,10 +153,14 @@ def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = N
         state["writer"].shutdown()
 
     app = FastAPI(title="lsgan", version=__version__, lifespan=lifespan, summary="Text and action to motion: "
-                  "a GAN in a motion VAE's latent space. Errors are {\"error\": \"one line\"}.")
+                  "a GAN in a motion VAE's latent space. Errors are {\"error\": \"one line\"}.",
+                  docs_url=None, redoc_url=None, redirect_slashes=False)
     app.add_middleware(BodyLimit, max_bytes=limits.max_body_bytes)
+    app.add_middleware(HeadAsGet)
+    app.add_middleware(HostCheck, allowed=hosts)
     add_error_handlers(app)
-    v1 = APIRouter(prefix="/v1", dependencies=[Depends(key_check(api_key))], responses=ERRORS)
+    add_docs_routes(app)
+    v1 = APIRouter(prefix="/v1", dependencies=[Depends(key_check(api_key))] if api_key else [], responses=ERRORS)
     info = info_of(engine, limits, api_key is not None)
     add_page_routes(app)
 
@@ -267,3 +257,33 @@ def add_page_routes(app: FastAPI) -> None:
         if found is None:
             raise ApiError(404, f"no page file {short(name)}")
         return Response(found[0], media_type=found[1], headers={"Cache-Control": "no-cache"})
+
+
+def add_docs_routes(app: FastAPI) -> None:
+    """/docs: Swagger UI from the files the installed fastapi-offline package ships (no network), or a one-line
+    pointer to the schema where that package is missing."""
+    from importlib.resources import files
+
+    from fastapi.openapi.docs import get_swagger_ui_html
+
+    try:
+        assets_dir = files("fastapi_offline") / "static"
+    except ModuleNotFoundError:
+        assets_dir = None
+    assets = {"swagger-ui-bundle.js": "text/javascript", "swagger-ui.css": "text/css", "favicon.png": "image/png"}
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        if assets_dir is None:
+            raise ApiError(404, "the docs page needs the fastapi-offline package (pip install 'lsgan[serve]'); the "
+                                "schema is at /openapi.json, the API in docs/api.md")
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="lsgan API",
+                                   swagger_js_url="/docs/swagger-ui-bundle.js", swagger_css_url="/docs/swagger-ui.css",
+                                   swagger_favicon_url="/docs/favicon.png")
+
+    @app.get("/docs/{name}", include_in_schema=False)
+    def docs_asset(name: str):
+        if assets_dir is None or name not in assets:
+            raise ApiError(404, f"no docs file {short(name)}")
+        return Response((assets_dir / name).read_bytes(), media_type=assets[name],
+                        headers={"Cache-Control": "max-age=86400"})

@@ -22,6 +22,14 @@ class Limits:
     gather_ms: float = 1.0  # how long a pass waits for more requests after the first one
     max_batch: int = 8  # motions in one engine pass (two engines on two cores: p99 200 against 230 ms at 16)
     store_size: int = 256  # motions kept for download (least recently used are dropped)
+    # HTTP itself (lsgan.serve.protocol; browsers and client libraries stay far below these)
+    max_line_bytes: int = 8192  # request target (path and query); more gets 414
+    max_header_bytes: int = 65536  # request line and headers together; more gets 431
+    max_headers: int = 100  # header lines; more gets 431
+    header_timeout_s: float = 10.0  # for a request's head to arrive, from its first byte or the connection; 408
+    body_timeout_s: float = 10.0  # for its body to arrive after the head; 408
+    keep_alive_s: float = 5.0  # an idle keep-alive connection is closed after this (uvicorn's timeout_keep_alive)
+    max_connections: int = 1024  # open at once; past it the longest-waiting idle or slow one is closed
 
     def checked(self, model_max_frames: int) -> Limits:
         """These limits with the model's frame bounds filled in; a ValueError when they contradict each other or
@@ -40,6 +48,13 @@ class Limits:
             ("gather_ms", 0 <= self.gather_ms <= 1000),
             ("max_batch", self.max_batch >= self.max_num),
             ("store_size", self.store_size >= self.max_num),
+            ("max_line_bytes", 64 <= self.max_line_bytes <= self.max_header_bytes),
+            ("max_header_bytes", self.max_header_bytes >= 1024),
+            ("max_headers", self.max_headers >= 8),
+            ("header_timeout_s", self.header_timeout_s > 0),
+            ("body_timeout_s", self.body_timeout_s > 0),
+            ("keep_alive_s", self.keep_alive_s > 0),
+            ("max_connections", self.max_connections >= 1),
         ) if not ok]
         if problems:
             raise ValueError(f"inconsistent limits: {', '.join(problems)} ({self.describe()})")

@@ -21,10 +21,12 @@ from collections.abc import Callable
 
 from lsgan.serve.engine import Engine, load_engine
 from lsgan.serve.limits import Limits
+from lsgan.serve.middleware import served_hosts
 from lsgan.serve.worker import EngineProcess
 from lsgan.threads import usable_cpus
 
 MAX_WORKERS = 4  # engine processes by default: each holds its own copy of the models
+FILE_MARGIN = 256  # open files beside the connections: models, pipes to the engines, logs
 
 
 def is_loopback(host: str) -> bool:
@@ -55,13 +57,56 @@ def listen(host: str, port: int) -> socket.socket:
     return sock
 
 
+def checked_key(api_key: str | None) -> str | None:
+    """The API key as given, or a ValueError: a key is visible ASCII (33-126), which every client can send."""
+    if api_key is None:
+        return None
+    if not api_key:
+        raise ValueError("the API key is empty")
+    bad = next((c for c in api_key if not 33 <= ord(c) <= 126), None)
+    if bad is not None:
+        raise ValueError(f"the API key holds {ascii(bad)}: use visible ASCII characters only (no spaces), which "
+                         "every HTTP client can send")
+    return api_key
+
+
+def read_key_file(path: str) -> str:
+    """The API key in ``path``: its first line, without the line break."""
+    try:
+        with open(path, encoding="ascii", errors="strict") as fh:
+            return fh.readline().rstrip("\r\n")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: the API key file is not ASCII") from None
+    except OSError as e:
+        raise OSError(f"{path}: cannot read the API key file ({(e.strerror or str(e)).lower()})") from None
+
+
+def open_files_for(limits: Limits) -> None:
+    """Raise the soft limit on open files towards the hard one so that ``max_connections`` fit with room for the
+    models, pipes and log files (FILE_MARGIN); a ValueError naming both when they cannot."""
+    try:
+        import resource
+    except ImportError:  # Windows: no such limit to raise
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = limits.max_connections + FILE_MARGIN
+    if soft != resource.RLIM_INFINITY and soft < want:
+        target = want if hard == resource.RLIM_INFINITY else min(want, hard)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+        soft = target
+    if soft != resource.RLIM_INFINITY and soft < want:
+        raise ValueError(f"--max-connections {limits.max_connections} needs {want} open files, and this process may "
+                         f"open {soft} (ulimit -n): lower --max-connections or raise the limit")
+
+
 def serve(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
           host: str = "127.0.0.1", port: int = 8000, api_key: str | None = None, limits: Limits | None = None,
           device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024,
-          workers: int | None = None,
+          workers: int | None = None, allow_hosts: tuple[str, ...] = (),
           say: Callable[[str], None] = lambda m: print(m, file=sys.stderr, flush=True)) -> None:
     """Serve ``--gan/--vae`` checkpoints or an ONNX ``--model`` folder on ``host:port`` until stopped, with
-    ``workers`` engine processes (default: :func:`start_engines`'s)."""
+    ``workers`` engine processes (default: :func:`start_engines`'s), answering to the Host names of
+    :func:`lsgan.serve.middleware.served_hosts` (``allow_hosts`` added)."""
     try:
         import fastapi  # noqa: F401 - checked before minutes of loading
         import uvicorn  # noqa: F401
@@ -71,8 +116,9 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
 
     if not 0 <= port <= 65535:
         raise ValueError(f"port {port} is not a TCP port (0 to 65535)")
-    if api_key is not None and not api_key.strip():
-        raise ValueError("the API key is empty")
+    api_key = checked_key(api_key)
+    open_files_for(limits or Limits())
+    hosts = served_hosts(host, allow_hosts)
     sock = listen(host, port)  # first: a port in use fails before minutes of loading
     try:
         engines = start_engines(dict(gan=gan, vae=vae, model=model, int8=int8, device=device,
@@ -82,7 +128,7 @@ def serve(*, gan: str | None = None, vae: str | None = None, model: str | None =
         raise
     try:
         limits = (limits or Limits()).checked(engines[0].max_frames)
-        _run(engines, limits, sock, host, api_key, say)
+        _run(engines, limits, sock, host, api_key, hosts, say)
     finally:
         for engine in engines:
             engine.close()
@@ -113,19 +159,22 @@ def start_engines(load_args: dict, workers: int | None = None) -> list[Engine]:
 
 
 def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, api_key: str | None,
-         say: Callable[[str], None]) -> None:
-    """uvicorn on ``sock`` over ``engines`` until SIGTERM or Ctrl-C; the requests in flight finish first."""
+         hosts: frozenset[str] | None, say: Callable[[str], None]) -> None:
+    """uvicorn on ``sock`` over ``engines`` until SIGTERM or Ctrl-C, speaking bounded HTTP
+    (:mod:`lsgan.serve.protocol`); the requests in flight finish first."""
     import uvicorn
 
     from lsgan.serve.app import create_app
+    from lsgan.serve.protocol import protocol_class
 
     if not is_loopback(host):
         say(f"warning: listening on {host}: other machines can reach this server"
             + ("" if api_key else " and use it without a key (--api-key)"))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(engines, limits, api_key=api_key), log_level="warning",
-                                           access_log=False, timeout_graceful_shutdown=limits.timeout_s + 5,
-                                           server_header=False))
+    server = uvicorn.Server(uvicorn.Config(create_app(engines, limits, api_key=api_key, hosts=hosts),
+                                           http=protocol_class(limits), timeout_keep_alive=limits.keep_alive_s,
+                                           log_level="warning", access_log=False, server_header=False,
+                                           timeout_graceful_shutdown=limits.timeout_s + 5))
     gc.collect()
     gc.freeze()  # the app's objects stay out of every later collection (the child does so for the models)
     sock.listen(2048)  # from here connections wait in the backlog until uvicorn accepts them

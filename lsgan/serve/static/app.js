@@ -68,7 +68,8 @@ async function api(path, options = {}) {
   if (response.status === 401) {
     ui.keyField.hidden = false;
     ui.key.focus();
-    message = apiKey() ? `the API key was refused: ${message}` : `this server needs an API key: ${message}`;
+    message = apiKey() ? 'the API key was refused: check it and try again'
+      : 'this server needs an API key: enter it in the field below';
   }
   throw new ApiError(message);
 }

@@ -1,0 +1,257 @@
+"""Bounded HTTP/1.x for ``lsgan serve``: uvicorn's httptools protocol with the limits it lacks.
+
+uvicorn gives an idle keep-alive timeout (``timeout_keep_alive``, used as is) but no bound on a request's head,
+no deadline for receiving it or its body, and no cap on open connections; httptools concatenates a header's
+pieces as they arrive, so one 64 MB header costs seconds of the event loop. :func:`protocol_class` adds, per
+connection (each bound is a :class:`lsgan.serve.limits.Limits` field and a command-line option):
+
+- the head (request line and headers) is fed to the parser only up to ``max_header_bytes``: past it, 431;
+  a request line over ``max_line_bytes``: 414; more than ``max_headers`` headers: 431;
+- a request's head must arrive within ``header_timeout_s`` of its first byte (or of the connection opening),
+  its body within ``body_timeout_s`` of the head: else 408; a client that stops taking an answer is closed when it
+  has taken nothing more for ``body_timeout_s``;
+- only HTTP/1.0 and 1.1: others (HTTP/0.9-style request lines, ``HTTP/2.0``) get 505; a malformed request 400;
+- at most ``max_connections`` open: a new connection over it closes the connection that has waited longest
+  without a request being answered (idle keep-alive, or a head still arriving); when every one is being
+  answered, the newcomer gets a quick 503. So idle and slow clients cannot lock out a well-behaved one.
+
+Every refusal is the API's JSON ``{"error": "one line"}`` with ``Connection: close``, and nothing is logged for a
+client's misbehaviour. At shutdown, connections whose request has not fully arrived are closed at once (503)
+rather than waited for; requests whose body is in are answered (uvicorn's graceful shutdown).
+"""
+from __future__ import annotations
+
+import http
+import json
+from collections import OrderedDict
+
+import httptools
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+from lsgan.serve.limits import Limits
+
+
+class Refusal(Exception):
+    """Raised in a parser callback to stop parsing and answer ``status`` with ``message``."""
+
+    def __init__(self, status: int, message: str, retry_after: int | None = None) -> None:
+        super().__init__(message)
+        self.status, self.message, self.retry_after = status, message, retry_after
+
+
+def refusal_bytes(status: int, message: str, retry_after: int | None = None,
+                  default_headers: list[tuple[bytes, bytes]] = ()) -> bytes:
+    """A whole HTTP/1.1 response: JSON ``{"error": message}``, ``Connection: close``."""
+    body = json.dumps({"error": message}).encode()
+    head = [f"HTTP/1.1 {status} {http.HTTPStatus(status).phrase}".encode()]
+    head += [name + b": " + value for name, value in default_headers]
+    head += [b"content-type: application/json", b"content-length: %d" % len(body), b"connection: close",
+             b"x-content-type-options: nosniff"]
+    if retry_after is not None:
+        head.append(b"retry-after: %d" % retry_after)
+    return b"\r\n".join(head) + b"\r\n\r\n" + body
+
+
+class Connections:
+    """The server's open connections, those waiting without a request being answered in the order they began to
+    wait (the first to evict)."""
+
+    def __init__(self) -> None:
+        self.open: set = set()
+        self.waiting: OrderedDict = OrderedDict()
+
+    def admit(self, conn, cap: int) -> bool:
+        """Count ``conn`` in, closing the longest-waiting connection when ``cap`` are open; False (``conn`` not
+        counted) when all of them are being answered."""
+        if len(self.open) >= cap:
+            if not self.waiting:
+                return False
+            oldest, _ = self.waiting.popitem(last=False)
+            oldest.drop()
+        self.open.add(conn)
+        self.wait(conn)
+        return True
+
+    def wait(self, conn) -> None:
+        self.waiting.pop(conn, None)
+        self.waiting[conn] = None
+
+    def busy(self, conn) -> None:
+        self.waiting.pop(conn, None)
+
+    def gone(self, conn) -> None:
+        self.open.discard(conn)
+        self.waiting.pop(conn, None)
+
+
+class BoundedProtocol(HttpToolsProtocol):
+    """HttpToolsProtocol with the module's bounds; ``limits`` and ``connections`` are set by :func:`protocol_class`."""
+
+    limits: Limits
+    connections_of_server: Connections
+
+    def connection_made(self, transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self.head_bytes, self.in_head, self.closed, self.timer, self.header_count = 0, True, False, None, 0
+        self.running = None  # the request being answered (uvicorn's ``cycle`` is the newest parsed one)
+        self.begun = False  # a request has begun to arrive and is not complete
+        self.stall = None  # the deadline of a client that has stopped reading an answer
+        if not self.connections_of_server.admit(self, self.limits.max_connections):
+            self.refuse(Refusal(503, f"over {self.limits.max_connections} open connections (the limit); retry "
+                                     "shortly", retry_after=1))
+            return
+        self.arm(self.limits.header_timeout_s, "request headers")
+
+    def connection_lost(self, exc) -> None:
+        self.connections_of_server.gone(self)
+        self.disarm()
+        if self.stall is not None:
+            self.stall.cancel()
+        self.closed = True
+        # uvicorn marks only the newest parsed request as disconnected: one being answered from a pipeline, or
+        # waiting in it, would write to the closed transport (uvloop raises). Every one of them is marked.
+        for cycle in {id(c): c for c in (self.running, *(c for c, _ in self.pipeline)) if c is not None}.values():
+            if not cycle.response_complete:
+                cycle.disconnected = True
+                cycle.message_event.set()
+        self.pipeline.clear()
+        super().connection_lost(exc)
+
+    def _start_asgi_task(self, cycle, app) -> None:
+        self.running = cycle
+        super()._start_asgi_task(cycle, app)
+
+    # --- deadlines ------------------------------------------------------------------------------------------------
+    def arm(self, seconds: float, what: str) -> None:
+        self.disarm()
+        self.timer = self.loop.call_later(seconds, self.expire, seconds, what)
+
+    def disarm(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+
+    def expire(self, seconds: float, what: str) -> None:
+        self.timer = None
+        self.refuse(Refusal(408, f"{what} not received within {seconds:g} s (the limit)"))
+
+    def drop(self) -> None:
+        """Close without a word (evicted while waiting, or stalled while taking an answer)."""
+        self.connections_of_server.gone(self)
+        self.closed = True
+        self.disarm()
+        if not self.transport.is_closing():
+            self.transport.close()
+
+    def refuse(self, refusal: Refusal) -> None:
+        """Answer ``refusal`` and close; only a line on the wire that no response has started on."""
+        if self.closed:
+            return
+        self.closed = True
+        self.disarm()
+        answering = any(c is not None and c.response_started and not c.response_complete
+                        for c in (self.running, self.cycle))
+        if not self.transport.is_closing() and not answering:
+            self.transport.write(refusal_bytes(refusal.status, refusal.message, refusal.retry_after,
+                                               self.server_state.default_headers))
+        if self.cycle is not None and not self.cycle.response_complete:
+            self.cycle.keep_alive = False
+        if not self.transport.is_closing():
+            self.transport.close()
+
+    # --- feeding the parser ---------------------------------------------------------------------------------------
+    def data_received(self, data: bytes) -> None:
+        self._unset_keepalive_if_required()
+        if self.closed:
+            return
+        view = memoryview(data)
+        try:
+            while view and not self.closed:
+                if not self.in_head:
+                    self.parser.feed_data(bytes(view))
+                    break
+                room = self.limits.max_header_bytes - self.head_bytes
+                if room <= 0:
+                    raise Refusal(431, f"request head over {self.limits.max_header_bytes} bytes (the limit)")
+                part, view = view[:room], view[room:]
+                self.head_bytes += len(part)
+                self.parser.feed_data(bytes(part))
+        except Refusal as r:
+            self.refuse(r)
+        except httptools.HttpParserUpgrade:
+            pass  # no protocol upgrades here: the request is answered as a plain one
+        except httptools.HttpParserError as e:
+            found = e.__context__ if isinstance(e.__context__, Refusal) else None
+            reason = str(e).splitlines()[0] if str(e) else "unreadable"
+            if found is None and "HTTP version" in reason:
+                found = Refusal(505, "this HTTP version is not served here: send HTTP/1.1")
+            self.refuse(found or Refusal(400, f"malformed HTTP request: {reason}"))
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self.in_head, self.begun, self.header_count = True, True, 0
+        self.connections_of_server.wait(self)
+        self.arm(self.limits.header_timeout_s, "request headers")
+
+    def on_url(self, url: bytes) -> None:
+        super().on_url(url)
+        if len(self.url) > self.limits.max_line_bytes:
+            raise Refusal(414, f"request target over {self.limits.max_line_bytes} bytes (the limit)")
+
+    def on_header(self, name: bytes, value: bytes) -> None:
+        self.header_count += 1
+        if self.header_count > self.limits.max_headers:
+            raise Refusal(431, f"more than {self.limits.max_headers} request headers (the limit)")
+        super().on_header(name, value)
+
+    def on_headers_complete(self) -> None:
+        version = self.parser.get_http_version()
+        if version not in ("1.0", "1.1"):
+            raise Refusal(505, f"HTTP/{version} is not served here: send HTTP/1.1")
+        self.in_head = False
+        self.connections_of_server.busy(self)
+        self.arm(self.limits.body_timeout_s, "request body")
+        super().on_headers_complete()
+
+    def on_message_complete(self) -> None:
+        self.disarm()
+        self.in_head, self.head_bytes, self.begun = True, 0, False  # next: the next request's head
+        super().on_message_complete()
+
+    def on_response_complete(self) -> None:
+        if not self.closed and not self.pipeline:  # else the next pipelined request is answered now
+            self.connections_of_server.wait(self)
+        super().on_response_complete()
+
+    def pause_writing(self) -> None:
+        """The answer waits for the client to take it: while it takes some within every ``body_timeout_s``, it may
+        go on; one that has taken nothing for that long is closed."""
+        super().pause_writing()
+        if self.stall is None:
+            self.check_stall(self.transport.get_write_buffer_size())
+
+    def check_stall(self, before: int) -> None:
+        left = self.transport.get_write_buffer_size()
+        if self.stall is not None and left >= before:
+            self.stall = None
+            self.drop()
+        else:
+            self.stall = self.loop.call_later(self.limits.body_timeout_s, self.check_stall, left)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def shutdown(self) -> None:
+        """Server shutdown: a request still arriving is refused now; one that has arrived is answered first."""
+        if self.begun:  # its head or its body is arriving
+            self.refuse(Refusal(503, "the server is shutting down", retry_after=2))
+        else:
+            super().shutdown()
+
+
+def protocol_class(limits: Limits) -> type[BoundedProtocol]:
+    """A :class:`BoundedProtocol` subclass for one server: its limits and its own connection registry."""
+    return type("LsganHttpProtocol", (BoundedProtocol,), {"limits": limits, "connections_of_server": Connections()})
