@@ -6,8 +6,9 @@ connection, one after another (latency: connect to last byte), while the attack 
 
 - ``baseline``: no attack (measured first and last; the ratio column divides by the first);
 - ``64MB-header``: one client streams a 64 MB header as fast as loopback takes it, again as soon as it is refused;
-- ``idle-20000``: 20,000 connections opened and left silent (two attacker processes of 10,000, so that each stays
-  under the open-file limit), reopened as the server closes them;
+- ``idle-20000``: 20,000 connections opened at once and left silent (two attacker processes of 10,000, so that
+  each stays under the open-file limit);
+- ``reconnect-flood``: the same, each reopened as soon as the server closes it;
 - ``slow-500``: 500 clients sending a request head a byte every 0.5 s (slowloris) and 500 more sending a body
   that way, reopened as the server closes them.
 
@@ -72,8 +73,9 @@ def big_header(port: int, stop: threading.Event, seen: dict) -> None:
         s.close()
 
 
-def hold_idle(port: int, count: int, seconds: float, queue) -> None:
-    """An attacker process: ``count`` silent connections, each reopened when the server closes it."""
+def hold_idle(port: int, count: int, seconds: float, reopen: bool, queue) -> None:
+    """An attacker process: ``count`` silent connections, held; with ``reopen`` each is reopened as soon as the
+    server closes it (a connection flood)."""
     import resource
 
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
@@ -101,7 +103,8 @@ def hold_idle(port: int, count: int, seconds: float, queue) -> None:
             sel.unregister(key.fileobj)
             key.fileobj.close()
             closed += 1
-            open_one()
+            if reopen:
+                open_one()
     queue.put({"opened": opened, "closed_by_server": closed, "failed": failed})
 
 
@@ -113,8 +116,7 @@ def slow_clients(port: int, count: int, stop: threading.Event, seen: dict) -> No
     def start(kind: str):
         s = socket.create_connection(("127.0.0.1", port), timeout=5)
         s.setblocking(False)
-        if kind == "body":
-            s.send(body)
+        s.send(body if kind == "body" else head)
         return [s, kind, 0]
 
     conns = [start("head") for _ in range(count)] + [start("body") for _ in range(count)]
@@ -156,18 +158,19 @@ def run(port: int, args) -> list[dict]:
     stop.set()
     t.join(30)
 
-    queue = multiprocessing.Queue()
-    attackers = [multiprocessing.Process(target=hold_idle, args=(port, 10000, args.seconds + 6, queue))
-                 for _ in range(2)]
-    for a in attackers:
-        a.start()
-    time.sleep(3)  # the connections are opening
-    row = scenario("idle-20000", port, args, {})
-    for a in attackers:
-        a.join(60)
-    row["attackers"] = [queue.get(timeout=10) for _ in attackers]
-    print(json.dumps(row["attackers"]), flush=True)
-    rows.append(row)
+    for name, reopen in (("idle-20000", False), ("reconnect-flood", True)):
+        queue = multiprocessing.Queue()
+        attackers = [multiprocessing.Process(target=hold_idle, args=(port, 10000, args.seconds + 4, reopen, queue))
+                     for _ in range(2)]
+        for a in attackers:
+            a.start()
+        time.sleep(1)  # the connections are opening
+        row = scenario(name, port, args, {})
+        for a in attackers:
+            a.join(60)
+        row["attackers"] = [queue.get(timeout=10) for _ in attackers]
+        print(json.dumps(row["attackers"]), flush=True)
+        rows.append(row)
 
     stop, seen = threading.Event(), {}
     t = threading.Thread(target=slow_clients, args=(port, 500, stop, seen), daemon=True)
