@@ -30,7 +30,7 @@ from lsgan.export.feet import LEG_JOINTS, contacts_from_features, fix_feet, grou
 from lsgan.generate import generate
 from lsgan.generation import Request
 
-RUNS = "/work/bandai_runs/runs"
+RUNS = "runs"  # where the README's Bandai commands put them
 BONES = ((1, 4), (4, 7), (7, 10), (2, 5), (5, 8), (8, 11))
 BANDS = ((0.0, 0.1), (0.1, 0.3), (0.3, 0.6), (0.6, np.inf))  # root speed, m/s
 FLOOR_BAND = 0.02  # m: a toe lower than this above its lowest height in the clip is on the floor
