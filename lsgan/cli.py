@@ -950,7 +950,7 @@ def export(input, as_glb, as_bvh, as_gif, as_mp4, title, body_model, gender, mod
                               model_type=model_type, fit_iterations=fit_iterations, force=force, rig=rig,
                               joint_map=joint_map, preset=preset, fix_feet=fix_feet)
     except (ValueError, ClipError, BodyModelError, EncodeError) as e:
-        _fail(str(e))
+        _fail(describe(e))
     for item in done:
         if item.params is not None:
             click.echo(f"{item.path}: body fit error mean {item.fit_mean_error_mm:.1f} mm, "

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_runs import lsgan, snapshot, tiny_pipeline
+from cli_runs import lsgan, snapshot
 
 from lsgan.deploy.int8 import joint_error_mm
 from lsgan.deploy.runtime import SPIN_US, load, session_options
@@ -28,14 +28,21 @@ PROMPTS = ["a person walks forward", "someone waves the left hand", "a man jumps
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory) -> Path:
-    """The tiny pipeline, an action GAN on its cache, and their exports: gan-onnx (fp32 + int8), act-onnx (fp32)."""
-    return tiny_pipeline(
-        tmp_path_factory.mktemp("deploy"),
-        ("train-gan", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--cond", "action", "--out", "act-gan"),
-        ("export-model", "gan", "-o", "gan-onnx", "--onnx", "--int8"),
-        ("export-model", "act-gan", "--vae", "vae", "-o", "act-onnx", "--onnx"),
-    )
+def runs(serve_models: Path, tmp_path_factory) -> Path:
+    """conftest's tiny pipeline and action GAN (hard-linked copies), and their exports made here: gan-onnx (fp32 +
+    int8), act-onnx (fp32)."""
+    d = tmp_path_factory.mktemp("deploy")
+    for name in ("tiny.yaml", "cache.h5", "synth.h5", "vae", "gan", "act-gan"):
+        src = serve_models / name
+        if src.is_dir():
+            shutil.copytree(src, d / name, copy_function=os.link)
+        elif src.exists():
+            os.link(src, d / name)
+    for step in (("export-model", "gan", "--vae", "vae", "-o", "gan-onnx", "--onnx", "--int8"),
+                 ("export-model", "act-gan", "--vae", "vae", "-o", "act-onnx", "--onnx")):
+        out = lsgan(*step, cwd=d)
+        assert out.returncode == 0, out.stderr[-3000:]
+    return d
 
 
 def test_export_writes_the_promised_files(runs: Path) -> None:

@@ -525,7 +525,7 @@ def test_micrometre_bones_make_a_valid_glb(tmp_path):
 
 @pytest.mark.parametrize("row, expect", [
     ({}, None),
-    ({"up": "z"}, "lying character: .*wrong `up` axis"),
+    ({"up": "z"}, "lie down through this map: .*`up` axis is wrong"),
     ({"scale": 1.0}, "wrongly sized character: figure 1.*wrong `scale`"),
     ({"handedness": "left"}, "mirrored character: .*wrong `handedness`"),
 ], ids=["correct", "wrong-up", "scale-x100", "mirrored"])

@@ -23,6 +23,7 @@ POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _CANONICAL = {c.lower(): c for c in POSITION_CHANNELS + ROTATION_CHANNELS}
 MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-4, 1.0
+REST_FRAME_TIME = 1.0 / 30.0  # the frame time of a rig read with no frames (never used by retargeting)
 """Frame times read, in seconds: 10,000 to 1 frames per second. Mocap records at 24-480 fps and keyframed
 exports at 1 fps or more; outside the range the header is damaged (resampling 'Frame Time: 100000' to 20 fps
 would make 2,000,000 frames of each one)."""
@@ -324,25 +325,29 @@ def _motion_values(path: str, body: bytes) -> np.ndarray:
 
 def read_bvh(path: str | Path, *, rest_only: bool = False) -> Bvh:
     """Parse a ``.bvh`` or gzip-compressed ``.bvh.gz`` file; any problem raises :class:`ClipError` naming the file.
-    ``rest_only`` (a rig, whose motion is optional): ``Frames: 0`` reads as a skeleton with no frames."""
+    ``rest_only`` (a rig, whose motion is optional): ``Frames: 0``, or no MOTION block at all, reads as a skeleton
+    with no frames (whose frame time, never used, may be anything)."""
     path = str(path)
     data = _read_bytes(path)
     start = re.search(rb"^[ \t]*HIERARCHY\b", data[:65536], re.MULTILINE)
     if start is None:
         raise ClipError(f"{path}: not a BVH file (no HIERARCHY keyword)")
     motion = _MOTION.search(data, start.end())
-    if motion is None:
+    if motion is None and not (rest_only and not re.search(rb"^[ \t]*MOTION\b", data, re.MULTILINE)):
         raise ClipError(f"{path}: no MOTION block with 'Frames:' and 'Frame Time:' lines")
     try:
-        header = data[start.end() : motion.start()].decode("utf-8", errors="replace")
-        num_frames = int(motion.group(1))
-        frame_time = float(motion.group(2))
+        header = data[start.end() : motion.start() if motion else len(data)].decode("utf-8", errors="replace")
+        num_frames = int(motion.group(1)) if motion else 0
+        frame_time = float(motion.group(2)) if motion else REST_FRAME_TIME
     except ValueError as exc:
         raise ClipError(f"{path}: bad MOTION header: {exc}") from exc
     names, parents, offsets, channels, end_sites = _parse_hierarchy(path, header)
     num_channels = sum(len(c) for c in channels)
-    _check_header(path, num_frames, frame_time, num_channels, len(names), len(data) - motion.end(), rest_only)
-    values = _motion_values(path, data[motion.end() :])
+    body = data[motion.end() :] if motion else b""
+    if rest_only and num_frames == 0:
+        frame_time = frame_time if MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME else REST_FRAME_TIME
+    _check_header(path, num_frames, frame_time, num_channels, len(names), len(body), rest_only)
+    values = _motion_values(path, body)
     if values.size % num_channels:
         raise ClipError(
             f"{path}: truncated MOTION block: {values.size} values are not a multiple of the "

@@ -36,6 +36,7 @@ JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")
 END_SITE_FRACTION = 0.5  # an End Site continues the leaf's bone by this fraction of its length
 
 _PARENTS = np.array(PARENTS)
+MIN_BONE_M = 1e-6  # a bone shorter than this in every frame: joints collapsed, not a body
 CHILDREN: tuple[tuple[int, ...], ...] = tuple(
     tuple(int(c) for c in np.flatnonzero(_PARENTS == j)) for j in range(NUM_JOINTS)
 )
@@ -239,6 +240,11 @@ def checked_motion(joints: np.ndarray, fps: float) -> np.ndarray:
         raise ValueError("joints hold NaN or infinite values")
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be positive and finite, got {fps}")
+    lengths = np.linalg.norm(j[:, 1:] - j[:, _PARENTS[1:]], axis=-1).max(axis=0)  # each bone's longest
+    if (lengths < MIN_BONE_M).any():
+        k = int(np.argmax(lengths < MIN_BONE_M)) + 1
+        raise ValueError(f"not a body: the bone {JOINT_NAMES[PARENTS[k]]} -> {JOINT_NAMES[k]} has no length in any "
+                         "frame (joints collapsed onto one point)")
     return j
 
 

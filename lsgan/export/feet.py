@@ -11,7 +11,10 @@ t+1 (:func:`lsgan.data.features.foot_contacts`), so frames t and t+1 are both in
 its ankle or toe channel says contact, that joint is within ``CONTACT_HEIGHT`` (5 cm, GMD's rule) of its lowest
 height in the clip (a foot held still in the air is no contact) and the toe moves less than ``STANCE_SPEED``
 or, in a run or sprint, less than ``STANCE_RATIO`` times the root (a foot gliding along with the body is in
-contact, one swinging past it is not); gaps of up to ``GAP_FRAMES`` frames are bridged.
+contact, one swinging past it is not); gaps of up to ``GAP_FRAMES`` frames are bridged. Where the root moves
+faster than ``GLIDE_SPEED`` (the channels' own contact speed), a foot within ``CONTACT_HEIGHT`` of its lowest
+height that keeps pace with the body is in stance even unmarked: the channels' speed rule cannot mark a foot a
+fast body carries along, and generated sprints come with none marked.
 
 Plants and steps (per side, planned over the whole clip). A stance run whose toe stays within ``STILL_TOE`` of
 where it rests (on the frames it is on the floor) is planted already and left as it is, and so is one whose toe
@@ -62,6 +65,7 @@ LEG_JOINTS = (4, 5, 7, 8, 10, 11)  # the joints fix_feet may move
 CONTACT_HEIGHT = 0.05  # m above the joint's lowest height in the clip: higher is not a ground contact
 STANCE_SPEED = 0.1  # m/frame: a toe moving faster is swinging, whatever its channel says (the rule is 4.5 cm)
 STANCE_RATIO = 1.5  # ... unless it moves less than this times the root: a gliding foot keeps pace with the body
+GLIDE_SPEED = 0.045  # m/frame: a root faster than the channels' contact speed; a low toe keeping pace is in stance
 GAP_FRAMES = 2  # stance gaps this short are bridged
 ENTRY_FRAMES, ENTRY_WAIT = 4, 0.005  # a run's first plant: where the toe rests this soon (waiting: m a frame)
 REACH = 0.99  # share of the stretched leg a planted leg may use (Bandai walks in stance: 0.98-1.0 at most)
@@ -123,7 +127,13 @@ def stance_frames(joints: np.ndarray, contacts: np.ndarray) -> np.ndarray:
     slow = np.ones((len(j), 2), dtype=bool)
     slow[1:] &= ~fast
     slow[:-1] &= ~fast
-    stance = (g[:, [0, 2]] | g[:, [1, 3]]) & slow
+    marked = g[:, [0, 2]] | g[:, [1, 3]]
+    y = j[:, [10, 11], 1].astype(np.float64)
+    body = np.zeros(len(j), dtype=bool)
+    body[1:] |= root > GLIDE_SPEED
+    body[:-1] |= root > GLIDE_SPEED
+    gliding = body[:, None] & (y - y.min(axis=0) < CONTACT_HEIGHT)  # the channels' speed rule cannot mark these
+    stance = (marked | gliding) & slow
     for s in range(2):
         edges = np.flatnonzero(np.diff(np.r_[0, stance[:, s].astype(np.int8), 0]))
         for end, start in zip(edges[1:-1:2], edges[2::2]):  # a gap [end, start) between two runs

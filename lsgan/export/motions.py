@@ -81,7 +81,7 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
     rigged = _load_rig(rig, joint_map, preset, fmt) if rig is not None else None
     source, out = Path(source), Path(output)
     titles = manifest_titles(source) if fmt in ("gif", "mp4") else {}
-    motions = clean_feet(source, load_motion_joints(source), fix_feet)
+    motions = clean_feet(source, checked_motions(source, load_motion_joints(source), fps), fix_feet)
     ext = f".{fmt}"
     single = len(motions) == 1 and out.suffix.lower() == ext
     paths = [out if single else out / f"{name.removesuffix('_joints')}{ext}" for name, _ in motions]
@@ -139,6 +139,22 @@ def _features_of(source: Path, name: str) -> Path | None:
         return source  # a features .npy is its own features (checked by shape)
     path = folder / f"{name.removesuffix('_joints')}_features.npy"
     return path if path.exists() else None
+
+
+def checked_motions(source: Path, motions: list[tuple[str, np.ndarray]], fps: float) -> list:
+    """``motions``, each checked as every exporter checks it (:func:`lsgan.export.bvh.checked_motion`) before
+    anything is written: a ValueError names the motion's file."""
+    from lsgan.export.bvh import checked_motion
+
+    for name, joints in motions:
+        try:
+            checked_motion(joints, fps)
+            if len(joints) < 2:
+                raise ValueError("a motion needs at least 2 frames")
+        except ValueError as e:
+            where = source if not source.is_dir() else source / f"{name}.npy"
+            raise ValueError(f"{where}: {e}") from None
+    return motions
 
 
 def clean_feet(source: str | Path, motions: list[tuple[str, np.ndarray]], fix: bool | None) -> list:

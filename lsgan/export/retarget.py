@@ -51,6 +51,7 @@ from lsgan.io import atomic_file
 
 _LEGS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"))
 MIRRORED_FRACTION = 0.8  # frames seen mirrored: a mirrored map 1.0; real rigs' clips (Bandai, CMU) 0.0
+MOCAP_FRAMES = 10  # fewer frames are a bind pose, not mocap: a lying one may be the pose, not a wrong `up`
 _FEET = [JOINT_NAMES.index(n) for n in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
 
 
@@ -329,7 +330,12 @@ def map_warnings(rig: Bvh, jmap: JointMap) -> list[str]:
     standing = standing_frames(j).any()
     found = [(kind, text) for kind, text in findings(clip_checks(j)) if kind in ("scale", "up")]
     out = [f"{where} would write a {'lying' if kind == 'up' else 'wrongly sized'} character: {text}"
-           for kind, text in found if standing or kind == "scale"]
+           for kind, text in found if kind == "scale" or (standing and rig.num_frames >= MOCAP_FRAMES)]
+    if standing and rig.num_frames < MOCAP_FRAMES and any(kind == "up" for kind, _ in found):
+        pose = "frames" if rig.num_frames else "rest pose"
+        out.append(f"{where}: the rig's {pose} lie down through this map: if the character stands in its own "
+                   "software, the map's `up` axis is wrong and the export would lie down too; if only its bind pose "
+                   "lies, the export is upright and this can be ignored")
     if not standing:
         poses = "none of the rig's frames shows" if rig.num_frames else "the rig's rest pose (no frames) is not"
         out.append(f"{rig.path}: {poses} a standing figure (legs below the trunk, side by side), so where its "
