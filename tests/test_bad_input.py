@@ -554,7 +554,7 @@ CASES = [
     Case("serve-frames-over-model", lambda w, p: ["serve", "--gan", p / "gan", "--vae", p / "vae", "--port", 0,
                                                   "--max-frames", 5000], 1, "more than this model decodes"),
     Case("serve-empty-api-key", lambda w, p: ["serve", "--gan", p / "gan", "--vae", p / "vae", "--port", 0,
-                                              "--api-key", " "], 1, "API key is empty"),
+                                              "--api-key", " "], 1, "the API key holds ' '"),
     Case("serve-no-engine-process", lambda w, p: ["serve", "--gan", p / "gan", "--vae", p / "vae", "--workers", 0], 2,
          "--workers"),
     Case("serve-bad-port", lambda w, p: ["serve", "--gan", p / "gan", "--vae", p / "vae", "--port", 70000], 2,
