@@ -1195,6 +1195,8 @@ def serve(gan, vae, model, int8, host, port, api_key, api_key_file, allow_hosts,
         raise click.UsageError("--text-encoder-path and --device go with --gan/--vae (an export runs on the CPU)")
     if api_key_file is not None and api_key is not None:
         raise click.UsageError("give the key once: --api-key (or LSGAN_API_KEY) or --api-key-file")
+    if api_key is None and os.environ.get("LSGAN_API_KEY") == "":
+        _fail("LSGAN_API_KEY is set but empty: give the key, or unset it to serve without one")
     try:
         from lsgan.serve.server import read_key_file
 

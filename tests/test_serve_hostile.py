@@ -122,12 +122,26 @@ ROWS = [
         400, "malformed HTTP request"),
     Row("bad-chunk-size", GEN(b"", AUTH, "Transfer-Encoding: chunked").replace(b"Content-Length: 0\r\n", b"")
         + b"zz\r\nabc\r\n0\r\n\r\n", 400, "malformed HTTP request"),
+    Row("huge-chunked-trailer", GEN(b"", AUTH, "Transfer-Encoding: chunked").replace(b"Content-Length: 0\r\n", b"")
+        + b"2\r\n{}\r\n0\r\nX-T: " + b"a" * (1 << 20), 413, "request body over"),
+    Row("absolute-form-target", head("http://evil.example/healthz"), 400, "request target must be a path"),
+    Row("connect", b"CONNECT evil.example:443 HTTP/1.1\r\nHost: evil.example:443\r\n\r\n", 400,
+        "request target must be a path"),
+    Row("http2-preface", b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n", 505, "not served here"),
+    Row("upgrade-with-body", GEN(b'{"text": "a person walks"}', AUTH, "Connection: Upgrade, HTTP2-Settings",
+                                 "Upgrade: h2c", "HTTP2-Settings: AAMAAABkAARAAAAAAAIAAAAA"), 400,
+        "send it without Upgrade"),
     # Host: only this server's names (DNS rebinding)
     Row("no-host", head(host=None), 400, "no Host header"),
     Row("two-hosts", head("/healthz", "Host: localhost"), 400, "several Host headers"),
     Row("foreign-host", head(host="evil.example"), 400, "host 'evil.example' is not served here"),
     Row("foreign-host-port", head(host="evil.example:8000"), 400, "is not served here"),
     Row("rebinding-suffix", head(host="127.0.0.1.evil.example"), 400, "is not served here"),
+    Row("host-userinfo", head(host="localhost:80@evil.example"), 400, "is not served here"),
+    Row("host-port-not-a-number", head(host="localhost:evil"), 400, "is not served here"),
+    Row("host-text-after-brackets", head(host="[::1]evil.example"), 400, "is not served here"),
+    Row("host-bare-ipv6", head(host="::1"), 400, "is not served here"),
+    Row("host-two-dots", head(host="localhost.."), 400, "is not served here"),
     Row("host-upper-case", head(host="LOCALHOST:80"), 200, '"ok"'),
     Row("host-trailing-dot", head(host="localhost."), 200, '"ok"'),
     Row("host-ipv6", head(host="[::1]:1234"), 200, '"ok"'),
@@ -173,7 +187,7 @@ def test_hostile_request(row: Row, server: Server) -> None:
         assert row.phrase.lower() in answer["error"].lower(), answer
     if row.status == 308:
         assert resp.getheader("location") == "/v1/info?x=1"  # a path: never the client's Host
-    if row.status in (400, 408, 414, 431, 505) and not row.id.startswith(("no-host", "two-hosts", "foreign",
+    if row.status in (400, 408, 413, 414, 431, 505) and not row.id.startswith(("no-host", "two-hosts", "foreign", "host-",
                                                                            "rebinding")):
         assert resp.getheader("connection") == "close"
     assert healthy_within(server) < HEALTHY_S
@@ -319,7 +333,8 @@ def test_shutdown_with_uploads_in_flight(serve_models: Path) -> None:
     (("--api-key", "a", "--api-key-file", "key.txt"), "give the key once"),
     (("--api-key-file", "empty.txt"), "the API key is empty"),
     (("--max-connections", "10000000"), "--max-connections 10000000 needs"),
-], ids=["non-ascii", "space", "empty", "key-twice", "empty-key-file", "connections-over-file-limit"])
+    (("--api-key", "k" * 1025), "at most 1024"),
+], ids=["non-ascii", "space", "empty", "key-twice", "empty-key-file", "connections-over-file-limit", "key-too-long"])
 def test_bad_keys_and_limits_refused_at_start(args, phrase, serve_models: Path, tmp_path: Path) -> None:
     """Refused before anything loads (the CLI in this process): one line naming the problem, exit 1 (2 for
     usage), no traceback."""
@@ -331,6 +346,43 @@ def test_bad_keys_and_limits_refused_at_start(args, phrase, serve_models: Path, 
     code, err = run_here(serve_models, "serve", "--gan", "gan", "--vae", "vae", "--port", "0", *args)
     assert code in (1, 2) and phrase in err, err
     assert "Traceback" not in err and len(err.strip().splitlines()) <= 3
+
+
+def test_empty_key_in_the_environment_is_refused(serve_models: Path, monkeypatch) -> None:
+    """LSGAN_API_KEY set but empty does not start an open server: one line, exit 1."""
+    from cli_runs import run_here
+
+    monkeypatch.setenv("LSGAN_API_KEY", "")
+    code, err = run_here(serve_models, "serve", "--gan", "gan", "--vae", "vae", "--port", "0")
+    assert code == 1 and "LSGAN_API_KEY is set but empty" in err, err
+
+
+def test_stalled_readers_are_freed_and_shutdown_is_quiet(serve_models: Path) -> None:
+    """Past the connection cap, clients that ask for the 1.5 MB docs script three times pipelined through a tiny
+    window and never read: the server's open descriptors stay near the cap, and SIGTERM ends it at once (exit 0,
+    no traceback, not the graceful timeout)."""
+    s = Server("--gan", "gan", "--vae", "vae", "--max-connections", 20, "--body-timeout", 1, cwd=serve_models)
+    socks = []
+    try:
+        for _ in range(3):
+            for _ in range(20):
+                c = socket.socket()
+                c.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+                c.connect((s.host, s.port))
+                c.sendall(head("/docs/swagger-ui-bundle.js") * 3)
+                socks.append(c)
+            time.sleep(2.0)
+        fds = len(list(Path(f"/proc/{s.proc.pid}/fd").iterdir()))
+        print(f"{len(socks)} stalled readers: the server holds {fds} descriptors")
+        assert fds < 20 + 60  # the cap, plus the server's own files and pipes
+        assert healthy_within(s) < HEALTHY_S
+    finally:
+        start = time.perf_counter()
+        code = s.stop()
+        took = time.perf_counter() - start
+        for c in socks:
+            c.close()
+    assert code == 0 and took < 5 and "Traceback" not in s.stderr and "ERROR" not in s.stderr, (took, s.stderr)
 
 
 def test_key_from_file_environment_and_allowed_hosts(serve_models: Path, tmp_path: Path) -> None:
@@ -361,12 +413,16 @@ NAMES = st.one_of(st.lists(LABEL, min_size=1, max_size=4).map(".".join),
 @given(name=NAMES, dot=st.booleans(), port=st.one_of(st.none(), st.integers(0, 99999)))
 def test_host_names_served_only_when_listed(name: str, dot: bool, port) -> None:
     """Whatever case, port, brackets or trailing dot a client writes in Host, the name compared is the host part,
-    lower case, and a loopback server serves it only when it is localhost, 127.0.0.1 or ::1."""
+    lower case, and a loopback server serves it only when it is localhost, 127.0.0.1 or ::1; a value that is not
+    RFC 3986's host [":" port] (a port over 65535, text after it) names nothing."""
     allowed = served_hosts("127.0.0.1")
     written = (f"[{name}]" if ":" in name else name) + ("." if dot and ":" not in name else "")
     value = written if port is None else f"{written}:{port}"
-    assert name_of(value) == name.lower()
-    assert (name_of(value) in allowed) == (name.lower() in ("localhost", "127.0.0.1", "::1"))
+    valid = port is None or port <= 65535
+    assert name_of(value) == (name.lower() if valid else None)
+    assert ((name_of(value) or "") in allowed) == (valid and name.lower() in ("localhost", "127.0.0.1", "::1"))
+    for junk in ("@evil.example", ":evil", ":", ":80:", ":-1", ".."):  # userinfo, odd ports, two trailing dots
+        assert name_of(written.rstrip(".") + junk) is None, written + junk
 
 
 def missing_browser() -> str | None:

@@ -26,7 +26,7 @@ from lsgan.serve.engine import Engine, Item, Result
 from lsgan.serve.files import FORMATS, download_name, export_bytes, static_bytes
 from lsgan.serve.jsonfmt import joints_json
 from lsgan.serve.limits import Limits
-from lsgan.serve.middleware import BodyLimit, HeadAsGet, HostCheck, error
+from lsgan.serve.middleware import BodyLimit, HeadAsGet, HostCheck, PacedBody, error
 from lsgan.serve.schemas import ErrorOut, GenerateRequest, GenerateResponse, Health, Info
 from lsgan.serve.store import MotionStore, Stored
 
@@ -156,6 +156,7 @@ def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = N
                   "a GAN in a motion VAE's latent space. Errors are {\"error\": \"one line\"}.",
                   docs_url=None, redoc_url=None, redirect_slashes=False)
     app.add_middleware(BodyLimit, max_bytes=limits.max_body_bytes)
+    app.add_middleware(PacedBody)
     app.add_middleware(HeadAsGet)
     app.add_middleware(HostCheck, allowed=hosts)
     add_error_handlers(app)
@@ -165,11 +166,11 @@ def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = N
     add_page_routes(app)
 
     @app.get("/healthz", response_model=Health, tags=["server"])
-    def healthz():
+    async def healthz():
         return {"status": "ok"}
 
     @v1.get("/info", response_model=Info, tags=["api"])
-    def get_info():
+    async def get_info():
         """The model (condition, actions, frame bounds), the server's limits and the skeleton to draw."""
         return info
 
@@ -245,14 +246,14 @@ def add_page_routes(app: FastAPI) -> None:
     """The page at / and its files at /static/NAME (only the files the package holds)."""
 
     @app.get("/", include_in_schema=False)
-    def page():
+    async def page():
         found = static_bytes("index.html")
         if found is None:
             raise ApiError(404, "the page is not installed (lsgan/serve/static/index.html); the API is at /v1")
         return Response(found[0], media_type=found[1], headers={"Cache-Control": "no-cache"})
 
     @app.get("/static/{name}", include_in_schema=False)
-    def static(name: str):
+    async def static(name: str):
         found = static_bytes(name)
         if found is None:
             raise ApiError(404, f"no page file {short(name)}")
@@ -270,10 +271,11 @@ def add_docs_routes(app: FastAPI) -> None:
         assets_dir = files("fastapi_offline") / "static"
     except ModuleNotFoundError:
         assets_dir = None
-    assets = {"swagger-ui-bundle.js": "text/javascript", "swagger-ui.css": "text/css", "favicon.png": "image/png"}
+    types = {"swagger-ui-bundle.js": "text/javascript", "swagger-ui.css": "text/css", "favicon.png": "image/png"}
+    assets = {name: ((assets_dir / name).read_bytes(), kind) for name, kind in types.items()} if assets_dir else {}
 
     @app.get("/docs", include_in_schema=False)
-    def docs():
+    async def docs():
         if assets_dir is None:
             raise ApiError(404, "the docs page needs the fastapi-offline package (pip install 'lsgan[serve]'); the "
                                 "schema is at /openapi.json, the API in docs/api.md")
@@ -282,8 +284,7 @@ def add_docs_routes(app: FastAPI) -> None:
                                    swagger_favicon_url="/docs/favicon.png")
 
     @app.get("/docs/{name}", include_in_schema=False)
-    def docs_asset(name: str):
-        if assets_dir is None or name not in assets:
+    async def docs_asset(name: str):
+        if name not in assets:
             raise ApiError(404, f"no docs file {short(name)}")
-        return Response((assets_dir / name).read_bytes(), media_type=assets[name],
-                        headers={"Cache-Control": "max-age=86400"})
+        return Response(assets[name][0], media_type=assets[name][1], headers={"Cache-Control": "max-age=86400"})

@@ -6,6 +6,8 @@ that files installed later are served too).
 """
 from __future__ import annotations
 
+import functools
+
 import io
 import re
 from importlib import resources
@@ -68,6 +70,7 @@ def static_files() -> dict[str, str]:
     return found
 
 
+@functools.lru_cache(maxsize=None)
 def static_bytes(name: str) -> tuple[bytes, str] | None:
     """(content, content type) of an allowed static file, or None."""
     allowed = static_files()

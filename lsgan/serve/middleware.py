@@ -1,9 +1,10 @@
 """ASGI middleware of ``lsgan serve``, outermost first: which hosts are served (:class:`HostCheck`), ``HEAD`` as
-``GET`` without the body (:class:`HeadAsGet`), and bounded bodies (:class:`BodyLimit`). Each answers a refusal as the
-API's JSON ``{"error": "one line"}``."""
+``GET`` without the body (:class:`HeadAsGet`), answers paced to the client (:class:`PacedBody`), and bounded request
+bodies (:class:`BodyLimit`). Each answers a refusal as the API's JSON ``{"error": "one line"}``."""
 from __future__ import annotations
 
 import ipaddress
+import re
 import socket
 
 from fastapi.responses import JSONResponse
@@ -21,7 +22,7 @@ def served_hosts(host: str, extra: tuple[str, ...] = ()) -> frozenset[str] | Non
     bound address itself; plus ``extra`` (``--allow-host``)."""
     if "*" in extra:
         return None
-    names = {name_of(h) for h in extra}
+    names = {name_of(h) or h.strip().lower() for h in extra}
     bare = host.strip("[]")
     try:
         address = ipaddress.ip_address(bare)
@@ -43,14 +44,30 @@ def served_hosts(host: str, extra: tuple[str, ...] = ()) -> frozenset[str] | Non
     return frozenset(names)
 
 
-def name_of(host: str) -> str:
-    """The name in a Host header value or an address: lower case, no port, no brackets, no trailing dot."""
-    host = host.strip().lower()
-    if host.startswith("["):
-        return host[1:host.find("]")] if "]" in host else host[1:]
-    if host.count(":") == 1:
-        host = host.split(":")[0]
-    return host.rstrip(".")
+_REG_NAME = re.compile(r"[a-z0-9._~!$&'()*+,;=%-]+")
+
+
+def name_of(host: str) -> str | None:
+    """The host in a Host header value or an address (RFC 3986's host [":" port]): lower case, without the port,
+    the brackets of an IPv6 literal or a trailing dot; None when the value is not one (userinfo, a port that is not
+    a number up to 65535, text after the brackets, an unclosed bracket, an empty name)."""
+    value = host.strip().lower()
+    if value.startswith("["):
+        end = value.find("]")
+        name, rest = (value[1:end], value[end + 1:]) if end > 0 else ("", "")
+        try:
+            ipaddress.IPv6Address(name)
+        except ValueError:
+            return None
+    else:
+        name, colon, port = value.partition(":")
+        rest = colon + port
+        if ":" in port or not name or not _REG_NAME.fullmatch(name):
+            return None  # a bare IPv6 address too: a Host header writes it in brackets
+    if rest and not (rest[0] == ":" and rest[1:].isdigit() and len(rest) <= 6 and int(rest[1:]) <= 65535):
+        return None
+    name = name.rstrip(".") if not name.endswith("..") else None
+    return name or None
 
 
 class HostCheck:
@@ -68,12 +85,39 @@ class HostCheck:
             if values or scope.get("http_version") != "1.0":
                 why = "several Host headers" if values else "no Host header (HTTP/1.1 requires one)"
                 return await error(400, why)(scope, receive, send)
-        elif name_of(values[0].decode("latin-1")) not in self.allowed:
+        elif (name_of(values[0].decode("latin-1")) or "") not in self.allowed:
             shown = ascii(values[0].decode("latin-1"))[1:-1][:80]
             return await error(400, f"host {shown!r} is not served here (this server answers to "
                                     f"{', '.join(sorted(self.allowed))}; add names with --allow-host)")(
                 scope, receive, send)
         await self.app(scope, receive, send)
+
+
+class PacedBody:
+    """An answer's body goes out in pieces of PIECE bytes, each sent once the connection has taken the last
+    (uvicorn waits while the transport's buffer is over its high-water mark): a client that reads slowly, or not at
+    all, holds one piece in the server's buffers, not a copy of the whole answer."""
+
+    PIECE = 65536
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def paced(message) -> None:
+            body = message.get("body", b"")
+            if message["type"] != "http.response.body" or len(body) <= self.PIECE:
+                return await send(message)
+            view, more = memoryview(body), message.get("more_body", False)
+            for start in range(0, len(view), self.PIECE):
+                last = start + self.PIECE >= len(view)
+                await send({"type": "http.response.body", "body": bytes(view[start:start + self.PIECE]),
+                            "more_body": more or not last})
+
+        await self.app(scope, receive, paced)
 
 
 class HeadAsGet:

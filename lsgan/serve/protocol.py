@@ -30,6 +30,8 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from lsgan.serve.limits import Limits
 
+LINGER_S = 2.0  # after a refusal mid-request, how long what the client still sends is read and thrown away
+
 
 class Refusal(Exception):
     """Raised in a parser callback to stop parsing and answer ``status`` with ``message``."""
@@ -50,6 +52,18 @@ def refusal_bytes(status: int, message: str, retry_after: int | None = None,
     if retry_after is not None:
         head.append(b"retry-after: %d" % retry_after)
     return b"\r\n".join(head) + b"\r\n\r\n" + body
+
+
+def parser_refusal(error: Exception) -> Refusal:
+    """The refusal for an httptools error: ours when a callback raised one, else what the parser says, in one line."""
+    if isinstance(error.__context__, Refusal):
+        return error.__context__
+    reason = (str(error).splitlines() or [""])[0] or type(error).__name__
+    if "HTTP version" in reason or "PRI" in reason:
+        return Refusal(505, "this HTTP version is not served here: send HTTP/1.1")
+    if isinstance(error.__context__, Exception) and str(error.__context__):
+        reason = str(error.__context__).splitlines()[0]
+    return Refusal(400, f"malformed HTTP request: {reason}")
 
 
 class Connections:
@@ -96,6 +110,7 @@ class BoundedProtocol(HttpToolsProtocol):
         self.running = None  # the request being answered (uvicorn's ``cycle`` is the newest parsed one)
         self.begun = False  # a request has begun to arrive and is not complete
         self.stall = None  # the deadline of a client that has stopped reading an answer
+        self.body_bytes = 0  # bytes fed to the parser since the head (body, chunk framing, trailers)
         if not self.connections_of_server.admit(self, self.limits.max_connections):
             self.refuse(Refusal(503, f"over {self.limits.max_connections} open connections (the limit); retry "
                                      "shortly", retry_after=1))
@@ -136,38 +151,51 @@ class BoundedProtocol(HttpToolsProtocol):
         self.refuse(Refusal(408, f"{what} not received within {seconds:g} s (the limit)"))
 
     def drop(self) -> None:
-        """Close without a word (evicted while waiting, or stalled while taking an answer)."""
+        """Close at once, without a word and discarding what is unsent (evicted while waiting, or stalled while
+        taking an answer): the socket, its buffers and the answer's task are freed now, not when a client that does
+        not read would have taken the rest."""
         self.connections_of_server.gone(self)
         self.closed = True
         self.disarm()
-        if not self.transport.is_closing():
-            self.transport.close()
+        self.transport.abort()
 
     def refuse(self, refusal: Refusal) -> None:
-        """Answer ``refusal`` and close; only a line on the wire that no response has started on."""
+        """Answer ``refusal`` and close; only a line on the wire that no response has started on. A client that may
+        still be sending (a head or body cut short) gets a lingering close: what it sends for up to LINGER_S more is
+        read and discarded, so that closing does not reset the connection before it has read the answer."""
         if self.closed:
             return
         self.closed = True
         self.disarm()
         answering = any(c is not None and c.response_started and not c.response_complete
                         for c in (self.running, self.cycle))
-        if not self.transport.is_closing() and not answering:
-            self.transport.write(refusal_bytes(refusal.status, refusal.message, refusal.retry_after,
-                                               self.server_state.default_headers))
         if self.cycle is not None and not self.cycle.response_complete:
             self.cycle.keep_alive = False
-        if not self.transport.is_closing():
+        if self.transport.is_closing():
+            return
+        if not answering:
+            self.transport.write(refusal_bytes(refusal.status, refusal.message, refusal.retry_after,
+                                               self.server_state.default_headers))
+        if self.begun and self.transport.can_write_eof():
+            self.connections_of_server.busy(self)
+            self.transport.write_eof()
+            self.timer = self.loop.call_later(LINGER_S, self.transport.abort)
+        else:
             self.transport.close()
 
     # --- feeding the parser ---------------------------------------------------------------------------------------
     def data_received(self, data: bytes) -> None:
         self._unset_keepalive_if_required()
         if self.closed:
-            return
+            return  # refused: discarded while the connection lingers
         view = memoryview(data)
         try:
             while view and not self.closed:
                 if not self.in_head:
+                    self.body_bytes += len(view)
+                    if self.body_bytes > self.limits.max_body_bytes + self.limits.max_header_bytes:
+                        raise Refusal(413, f"request body over {self.limits.max_body_bytes} bytes (the limit; chunk "
+                                           "framing and trailers count too)")
                     self.parser.feed_data(bytes(view))
                     break
                 room = self.limits.max_header_bytes - self.head_bytes
@@ -181,11 +209,7 @@ class BoundedProtocol(HttpToolsProtocol):
         except httptools.HttpParserUpgrade:
             pass  # no protocol upgrades here: the request is answered as a plain one
         except httptools.HttpParserError as e:
-            found = e.__context__ if isinstance(e.__context__, Refusal) else None
-            reason = str(e).splitlines()[0] if str(e) else "unreadable"
-            if found is None and "HTTP version" in reason:
-                found = Refusal(505, "this HTTP version is not served here: send HTTP/1.1")
-            self.refuse(found or Refusal(400, f"malformed HTTP request: {reason}"))
+            self.refuse(parser_refusal(e))
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
@@ -208,10 +232,20 @@ class BoundedProtocol(HttpToolsProtocol):
         version = self.parser.get_http_version()
         if version not in ("1.0", "1.1"):
             raise Refusal(505, f"HTTP/{version} is not served here: send HTTP/1.1")
-        self.in_head = False
+        method = self.parser.get_method()
+        if method == b"CONNECT" or not self.url.startswith((b"/", b"*")):
+            raise Refusal(400, "request target must be a path (this is not a proxy: no CONNECT, no absolute URLs)")
+        upgrade = self.parser.should_upgrade()
+        if upgrade and any(k in (b"content-length", b"transfer-encoding") and v.strip() not in (b"", b"0")
+                           for k, v in self.headers):
+            raise Refusal(400, "protocol upgrades are not served here, and the Upgrade header hides this request's "
+                               "body: send it without Upgrade (HTTP/1.1)")
+        self.in_head, self.body_bytes = False, 0
         self.connections_of_server.busy(self)
         self.arm(self.limits.body_timeout_s, "request body")
         super().on_headers_complete()
+        if upgrade and self.cycle is not None:  # the parser stops here: nothing after this request is read
+            self.cycle.keep_alive = False
 
     def on_message_complete(self) -> None:
         self.disarm()
@@ -248,6 +282,8 @@ class BoundedProtocol(HttpToolsProtocol):
         """Server shutdown: a request still arriving is refused now; one that has arrived is answered first."""
         if self.begun:  # its head or its body is arriving
             self.refuse(Refusal(503, "the server is shutting down", retry_after=2))
+        elif self.flow is not None and self.flow.write_paused:  # the client is not taking its answer
+            self.drop()
         else:
             super().shutdown()
 

@@ -27,6 +27,7 @@ from lsgan.threads import usable_cpus
 
 MAX_WORKERS = 4  # engine processes by default: each holds its own copy of the models
 FILE_MARGIN = 256  # open files beside the connections: models, pipes to the engines, logs
+MAX_KEY_CHARS = 1024  # an API key fits in a request head whatever --max-header-bytes (at least 1,024) allows
 
 
 def is_loopback(host: str) -> bool:
@@ -63,6 +64,9 @@ def checked_key(api_key: str | None) -> str | None:
         return None
     if not api_key:
         raise ValueError("the API key is empty")
+    if len(api_key) > MAX_KEY_CHARS:
+        raise ValueError(f"the API key is {len(api_key):,} characters long: at most {MAX_KEY_CHARS} (a request's "
+                         "headers are bounded, so a longer one could never be sent)")
     bad = next((c for c in api_key if not 33 <= ord(c) <= 126), None)
     if bad is not None:
         raise ValueError(f"the API key holds {ascii(bad)}: use visible ASCII characters only (no spaces), which "
@@ -177,7 +181,7 @@ def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, 
                                            timeout_graceful_shutdown=limits.timeout_s + 5))
     gc.collect()
     gc.freeze()  # the app's objects stay out of every later collection (the child does so for the models)
-    sock.listen(2048)  # from here connections wait in the backlog until uvicorn accepts them
+    sock.listen(65535)  # from here connections wait in the backlog (the kernel caps it: net.core.somaxconn)
     url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
     processes = f"{len(engines)} engine processes" if len(engines) > 1 else "one engine process"
     say(f"lsgan serve: {engines[0].describe()}, {processes}, loaded in {sum(e.load_s for e in engines):.1f} s; "
