@@ -35,6 +35,8 @@ from pathlib import Path
 
 from serve import Server, demo_size_models  # benchmarks/serve.py
 
+NICE = 0  # --attacker-nice: the idle attackers' niceness (a remote attacker spends none of the server's CPU)
+
 
 def probe(port: int) -> tuple[int, float]:
     start = time.perf_counter()
@@ -78,6 +80,8 @@ def hold_idle(port: int, count: int, seconds: float, reopen: bool, queue) -> Non
     server closes it (a connection flood)."""
     import resource
 
+    if NICE:
+        os.nice(NICE)
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
     sel = selectors.DefaultSelector()
@@ -189,8 +193,13 @@ def main() -> None:
     ap.add_argument("--vae")
     ap.add_argument("--probes", type=int, default=200)
     ap.add_argument("--seconds", type=float, default=8.0, help="per scenario, spread over its probes")
+    ap.add_argument("--attacker-nice", type=int, default=0,
+                    help="run the idle and flood attackers at this niceness (19: the CPU is the server's first, as "
+                         "with a remote attacker); they share this machine's cores otherwise")
     ap.add_argument("--json")
     args = ap.parse_args()
+    global NICE
+    NICE = args.attacker_nice
     print(f"{platform.node()}, {os.cpu_count()} CPUs; load average before: {os.getloadavg()[0]:.2f}", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         gan, vae = (args.gan, args.vae) if args.gan else demo_size_models(Path(tmp))
