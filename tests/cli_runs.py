@@ -5,6 +5,7 @@ import contextlib
 import hashlib
 import io
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -43,6 +44,21 @@ def tiny_pipeline(d: Path, *more: tuple) -> Path:
     """TINY_RECIPE's pipeline in ``d`` (tiny.yaml, synth.h5, vae/, cache.h5, gan/), then the steps ``more``."""
     (d / "tiny.yaml").write_text(TINY_RECIPE)
     for step in [*TINY_PIPELINE, *more]:
+        out = lsgan(*step, cwd=d)
+        assert out.returncode == 0, f"{step[0]} failed:\n{out.stderr[-3000:]}"
+    return d
+
+
+def linked_pipeline(models: Path, d: Path, *more: tuple) -> Path:
+    """conftest's session pipeline (``serve_models``: tiny.yaml, synth.h5, vae/, cache.h5, gan/) hard-linked into
+    ``d`` (no training again; lsgan replaces files, never edits them), then the steps ``more`` run in ``d``."""
+    for name in ("tiny.yaml", "synth.h5", "cache.h5", "vae", "gan"):
+        src = models / name
+        if src.is_dir():
+            shutil.copytree(src, d / name, copy_function=os.link)
+        else:
+            os.link(src, d / name)
+    for step in more:
         out = lsgan(*step, cwd=d)
         assert out.returncode == 0, f"{step[0]} failed:\n{out.stderr[-3000:]}"
     return d

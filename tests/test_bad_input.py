@@ -23,7 +23,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from cli_runs import lsgan, snapshot, tiny_pipeline
+from cli_runs import linked_pipeline, lsgan, snapshot
 
 from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.data.synthetic import generate as synthetic_clips
@@ -32,11 +32,11 @@ from lsgan.export.bvh import write_bvh
 pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
-def pipe(tmp_path_factory) -> Path:
+def pipe(serve_models: Path, tmp_path_factory) -> Path:
     """A tiny real pipeline: shard, VAE, latent cache, GAN and one generate folder (read-only for the rows)."""
-    return tiny_pipeline(tmp_path_factory.mktemp("pipe"),
-                         ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--frames", 40,
-                          "-o", "gen"))
+    return linked_pipeline(serve_models, tmp_path_factory.mktemp("pipe"),
+                           ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--frames", 40,
+                            "-o", "gen"))
 
 
 # ---- inputs -------------------------------------------------------------------------------------------------

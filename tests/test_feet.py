@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_runs import lsgan, tiny_pipeline
+from cli_runs import linked_pipeline, lsgan
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -252,10 +252,10 @@ def test_bad_input() -> None:
 
 
 @pytest.fixture(scope="module")
-def pipe(tmp_path_factory) -> Path:
-    return tiny_pipeline(tmp_path_factory.mktemp("feet"),
-                         ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--num", 3,
-                          "--frames", 60, "--fix-feet", "-o", "gen"))
+def pipe(serve_models: Path, tmp_path_factory) -> Path:
+    return linked_pipeline(serve_models, tmp_path_factory.mktemp("feet"),
+                           ("generate", "--gan", "gan", "--vae", "vae", "--text", "a person walks", "--num", 3,
+                            "--frames", 60, "--fix-feet", "-o", "gen"))
 
 
 @pytest.mark.slow
