@@ -1,7 +1,6 @@
 """The ``lsgan`` command line: thin wrappers that parse options and call one library function each."""
 from __future__ import annotations
 
-import errno
 import os
 import sys
 
@@ -18,6 +17,7 @@ from pathlib import Path  # noqa: E402
 import click  # noqa: E402
 
 from lsgan import __version__  # noqa: E402
+from lsgan.errors import debugging, describe  # noqa: E402
 
 SOURCES = ("synthetic", "bvh", "humanml3d", "joints", "amass", "humanact12")
 INTERRUPTED = 130  # the shell's code for a process stopped by Ctrl-C (128 + SIGINT)
@@ -92,7 +92,7 @@ class LsganCommand(click.Command):
 
 def _fail(message: str) -> None:
     """Print ``error: MESSAGE`` and exit 1; under --debug re-raise the exception being handled instead."""
-    if _debugging() and sys.exc_info()[1] is not None:
+    if debugging() and sys.exc_info()[1] is not None:
         raise sys.exc_info()[1]
     _close_progress_bars()
     click.echo(f"error: {message}", err=True)
@@ -111,44 +111,6 @@ def _stopped(hint: str) -> None:
     """Ctrl-C: say what is kept and how to go on, and exit 130."""
     click.echo(f"\ninterrupted: {hint}", err=True)
     sys.exit(INTERRUPTED)
-
-
-def _debugging() -> bool:
-    return os.environ.get("LSGAN_DEBUG", "") not in ("", "0")
-
-
-# OSErrors of writing in the words a user acts on (the bare strerror of ENOSPC does not say "disk full")
-PLAIN_ERRNO = {errno.ENOSPC: "disk full (no space left on the device)",
-               errno.EFBIG: "file too large (over the file system's or this process's file-size limit)",
-               errno.EDQUOT: "disk quota exceeded"}
-
-
-def describe(error: BaseException) -> str:
-    """An exception as the one line ``error:`` prints: the file first, then the problem. A KeyError or
-    IndexError (``'optimizer'``) names nothing a user can act on: it is an internal error, to be reported."""
-    if isinstance(error, OSError) and error.filename is not None:
-        said = PLAIN_ERRNO.get(error.errno) or error.strerror or f"cannot write it ({error.args[0]})"
-        return f"{error.filename}: {said[:1].lower()}{said[1:]}"
-    if isinstance(error, MemoryError) or (isinstance(error, RuntimeError) and "alloc" in str(error)
-                                          and "bytes" in str(error)):  # torch's allocator says it so
-        return _out_of_memory(error)
-    if isinstance(error, (ValueError, OSError, RuntimeError)) and str(error):
-        return " ".join(str(error).split("\n"))
-    return (f"internal error: {type(error).__name__}: {error} (please report it; LSGAN_DEBUG=1 or --debug "
-            "shows the traceback)")
-
-
-def _out_of_memory(error: BaseException) -> str:
-    """A MemoryError no reader refused beforehand, in one line: the allocation that failed (numpy says its size)
-    and the file being worked on, the ``path`` of the innermost function of the traceback that has one."""
-    lines = str(error).strip().splitlines()
-    detail = lines[0][:200] if lines else "an allocation failed"
-    path, tb = None, error.__traceback__
-    while tb is not None:
-        value = tb.tb_frame.f_locals.get("path")
-        path = value if isinstance(value, (str, os.PathLike)) else path
-        tb = tb.tb_next
-    return f"{path}: out of memory ({detail})" if path is not None else f"out of memory ({detail})"
 
 
 def _plainly(error: Exception) -> str:
@@ -201,7 +163,7 @@ class LsganGroup(click.Group):
             click.echo("\ninterrupted", err=True)
             code = INTERRUPTED
         except Exception as e:  # noqa: BLE001 - the promise: one line, no traceback unless asked
-            if _debugging():
+            if debugging():
                 raise
             _close_progress_bars()
             click.echo(f"error: {describe(e)}", err=True)

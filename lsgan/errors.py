@@ -99,3 +99,42 @@ def _short_write_cause(written: Path) -> int | None:
     except (OSError, ImportError, AttributeError):
         return None
     return None
+
+
+def debugging() -> bool:
+    """Whether tracebacks are asked for (``LSGAN_DEBUG`` set to anything but 0)."""
+    return os.environ.get("LSGAN_DEBUG", "") not in ("", "0")
+
+
+# OSErrors of writing in the words a user acts on (the bare strerror of ENOSPC does not say "disk full")
+PLAIN_ERRNO = {errno.ENOSPC: "disk full (no space left on the device)",
+               errno.EFBIG: "file too large (over the file system's or this process's file-size limit)",
+               errno.EDQUOT: "disk quota exceeded"}
+
+
+def describe(error: BaseException) -> str:
+    """An exception as the one line ``error:`` prints: the file first, then the problem. A KeyError or
+    IndexError (``'optimizer'``) names nothing a user can act on: it is an internal error, to be reported."""
+    if isinstance(error, OSError) and error.filename is not None:
+        said = PLAIN_ERRNO.get(error.errno) or error.strerror or f"cannot write it ({error.args[0]})"
+        return f"{error.filename}: {said[:1].lower()}{said[1:]}"
+    if isinstance(error, MemoryError) or (isinstance(error, RuntimeError) and "alloc" in str(error)
+                                          and "bytes" in str(error)):  # torch's allocator says it so
+        return _out_of_memory(error)
+    if isinstance(error, (ValueError, OSError, RuntimeError)) and str(error):
+        return " ".join(str(error).split("\n"))
+    return (f"internal error: {type(error).__name__}: {error} (please report it; LSGAN_DEBUG=1 or --debug "
+            "shows the traceback)")
+
+
+def _out_of_memory(error: BaseException) -> str:
+    """A MemoryError no reader refused beforehand, in one line: the allocation that failed (numpy says its size)
+    and the file being worked on, the ``path`` of the innermost function of the traceback that has one."""
+    lines = str(error).strip().splitlines()
+    detail = lines[0][:200] if lines else "an allocation failed"
+    path, tb = None, error.__traceback__
+    while tb is not None:
+        value = tb.tb_frame.f_locals.get("path")
+        path = value if isinstance(value, (str, os.PathLike)) else path
+        tb = tb.tb_next
+    return f"{path}: out of memory ({detail})" if path is not None else f"out of memory ({detail})"

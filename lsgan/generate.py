@@ -103,7 +103,7 @@ def load_models(gan: str | os.PathLike, vae: str | os.PathLike, *, device: str |
     """The generator checkpoint ``gan``, the VAE it learned from and its text encoder, on ``device``."""
     from lsgan.models.checkpoint import weights_hash
     from lsgan.models.vae import load_vae
-    from lsgan.train.common import pick_device
+    from lsgan.device import pick_device
 
     dev = pick_device(device) if isinstance(device, str) else device
     model, gmeta = load_generator(gan, device=dev)
@@ -240,7 +240,7 @@ def sample_latents(
     eta: float | None = None,
 ) -> np.ndarray:
     """The latents (len(requests)*num, Z), in the VAE's latent space, that ``generate`` decodes for these arguments."""
-    from lsgan.train.common import pick_device
+    from lsgan.device import pick_device
 
     dev = pick_device(device)
     model, meta = load_generator(gen, device=dev)

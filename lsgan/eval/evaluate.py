@@ -192,7 +192,7 @@ def evaluate_text_to_motion(
     from lsgan.data.dataset import MotionDataset
     from lsgan.generate import generate
     from lsgan.models.evaluator import load_evaluator
-    from lsgan.train.common import pick_device
+    from lsgan.device import pick_device
 
     if fid_reference not in FID_REFERENCES:
         raise ValueError(f"fid_reference must be one of {', '.join(FID_REFERENCES)}, not {fid_reference!r}")
@@ -251,7 +251,7 @@ def evaluate_reconstruction(
     from lsgan.data.dataset import MotionDataset
     from lsgan.data.features import recover_from_ric
     from lsgan.models.vae import load_vae
-    from lsgan.train.common import pick_device
+    from lsgan.device import pick_device
 
     dev = pick_device(device)
     model, meta = load_vae(vae, device=dev)
@@ -317,7 +317,7 @@ def evaluate_action_to_motion(
     from lsgan.data.features import recover_from_ric
     from lsgan.generate import Request, generate
     from lsgan.models.evaluator import load_action_classifier
-    from lsgan.train.common import pick_device
+    from lsgan.device import pick_device
 
     dev = pick_device(device)
     clf = load_action_classifier(classifier, device=dev)

@@ -286,7 +286,7 @@ def encode_latents(
     from lsgan.data.dataset import MotionDataset
     from lsgan.models.checkpoint import resolve, weights_hash
     from lsgan.models.vae import load_vae
-    from lsgan.train.common import pick_device
+    from lsgan.device import pick_device
 
     sources = [data] if isinstance(data, (str, os.PathLike)) else list(data)
     outputs.claim_file(out, force=force, inputs=[*sources, vae])

@@ -56,9 +56,9 @@ def receive(stream: BinaryIO) -> tuple[dict, bytes]:
 def _failure(error: BaseException) -> dict:
     """The header of a failure: the one line ``lsgan`` prints for it, and whether the input was at fault (with
     ``LSGAN_DEBUG=1`` the child prints the traceback too)."""
-    from lsgan.cli import _debugging, describe
+    from lsgan.errors import debugging, describe
 
-    if _debugging():
+    if debugging():
         traceback.print_exc()
     return {"error": describe(error) or type(error).__name__, "input": isinstance(error, (ValueError, LookupError))}
 

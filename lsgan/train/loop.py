@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 from lsgan import outputs
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, collate
+from lsgan.device import pick_device
 from lsgan.faults import fault_point
 from lsgan.models.checkpoint import CONFIG, load_state, load_weights, save_checkpoint
 from lsgan.threads import ThreadPolicy, run_threads, threads_said
@@ -53,7 +54,6 @@ from lsgan.train.common import (
     check_finite,
     claim_run,
     closing_progress_bars,
-    pick_device,
     run_distributed,
 )
 
