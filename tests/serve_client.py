@@ -4,6 +4,7 @@ from __future__ import annotations
 import http.client
 import json
 import os
+import shutil
 import re
 import signal
 import subprocess
@@ -13,6 +14,8 @@ import time
 from pathlib import Path
 
 STARTUP_S = 60.0
+THREE_CHECK = Path(__file__).resolve().parents[1] / "tools" / "three-check"
+CHROMIUM = Path("/usr/bin/chromium")
 
 
 class Server:
@@ -85,3 +88,14 @@ class Server:
                 self.proc.wait()
         self._reader.join(5)
         return self.proc.returncode
+
+
+def missing_browser() -> str | None:
+    """Why the page cannot be driven here, or None."""
+    if shutil.which("node") is None:
+        return "node is not installed: the page is driven from Node (CI installs it)"
+    if not CHROMIUM.exists():
+        return f"no {CHROMIUM}: install it with `apt-get install -y chromium chromium-driver` (CI does)"
+    if not (THREE_CHECK / "node_modules" / "playwright-core").exists():
+        return "playwright-core is not installed: run `npm ci` in tools/three-check (CI does)"
+    return None

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import http.client
 import json
-import shutil
 import socket
 import subprocess
 import threading
@@ -21,7 +20,7 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from serve_client import Server
+from serve_client import THREE_CHECK, Server, missing_browser
 
 from lsgan.serve.middleware import name_of, served_hosts
 
@@ -31,7 +30,6 @@ HEALTHY_S = 1.0  # a generous bound for a loaded 2-core CI machine; benchmarks/s
 CAP, HEAD_BYTES, LINE_BYTES, HEADERS = 32, 4096, 1024, 20
 LIMITS = ("--max-header-bytes", HEAD_BYTES, "--max-line-bytes", LINE_BYTES, "--max-headers", HEADERS,
           "--header-timeout", 1, "--body-timeout", 1, "--keep-alive", 1, "--max-connections", CAP)
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -416,22 +414,12 @@ def test_host_names_served_only_when_listed(name: str, dot: bool, port) -> None:
         assert name_of(written.rstrip(".") + junk) is None, written + junk
 
 
-def missing_browser() -> str | None:
-    if shutil.which("node") is None:
-        return "node is not installed (CI installs it)"
-    if not Path("/usr/bin/chromium").exists():
-        return "no /usr/bin/chromium: apt-get install -y chromium chromium-driver (CI does)"
-    if not (ROOT / "tools" / "three-check" / "node_modules" / "playwright-core").exists():
-        return "playwright-core is not installed: npm ci in tools/three-check (CI does)"
-    return None
-
-
 @pytest.mark.skipif(missing_browser() is not None, reason=str(missing_browser()))
 def test_docs_offline_with_the_key(server: Server) -> None:
     """/docs in Chromium with every request off the server aborted: Swagger UI renders the operations from the
     installed package, offers Authorize (the schema declares the key), and GET /v1/info with the key answers 200."""
     out = subprocess.run(["node", "docs-page.mjs", "--url", f"http://127.0.0.1:{server.port}/docs", "--api-key", KEY],
-                         cwd=ROOT / "tools" / "three-check", capture_output=True, text=True, timeout=180)
+                         cwd=THREE_CHECK, capture_output=True, text=True, timeout=180)
     schema = json.loads(server.request("GET", "/openapi.json")[2])
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["problems"] == [] and report["outside_requests"] == [], report

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import urllib.error
 import urllib.request
@@ -23,26 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serve_client import Server
+from serve_client import THREE_CHECK, Server, missing_browser
 
-ROOT = Path(__file__).resolve().parents[1]
-THREE_CHECK = ROOT / "tools" / "three-check"
 DRIVER = THREE_CHECK / "serve-page.mjs"
-CHROMIUM = Path("/usr/bin/chromium")
 ARTIFACTS = Path(os.environ.get("LSGAN_ARTIFACTS") or Path(__file__).resolve().parent / "artifacts")
 SENTENCE = "a person walks forward"
 API_KEY = "page-test-key"
-
-
-def missing_browser() -> str | None:
-    """Why the page cannot be driven here, or None."""
-    if shutil.which("node") is None:
-        return "node is not installed: the page is driven from Node (CI installs it)"
-    if not CHROMIUM.exists():
-        return f"no {CHROMIUM}: install it with `apt-get install -y chromium chromium-driver` (CI does)"
-    if not (THREE_CHECK / "node_modules" / "playwright-core").exists():
-        return "playwright-core is not installed: run `npm ci` in tools/three-check (CI does)"
-    return None
 
 
 # Decided at import, so that a machine without the browser skips before conftest trains the models.
