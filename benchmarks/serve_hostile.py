@@ -16,6 +16,7 @@ Reported per scenario: probes answered 200, p50/p99/max ms, max over the baselin
 saw (answers by status, connections the server closed). The 1-minute load average is printed before and after.
 
     python benchmarks/serve_hostile.py --gan runs/bandai-gan --vae runs/bandai-vae [--probes 200] [--seconds 8]
+        [--attacker-nice 19] [--only idle-20000 ...]
 """
 from __future__ import annotations
 
@@ -152,17 +153,23 @@ def scenario(name: str, port: int, args, seen: dict) -> dict:
     return out
 
 
+SCENARIOS = ("64MB-header", "idle-20000", "reconnect-flood", "slow-500")
+
+
 def run(port: int, args) -> list[dict]:
     rows = [scenario("baseline", port, args, {})]
-    stop, seen = threading.Event(), {}
-    t = threading.Thread(target=big_header, args=(port, stop, seen), daemon=True)
-    t.start()
-    time.sleep(0.5)
-    rows.append(scenario("64MB-header", port, args, seen))
-    stop.set()
-    t.join(30)
+    if "64MB-header" in args.only:
+        stop, seen = threading.Event(), {}
+        t = threading.Thread(target=big_header, args=(port, stop, seen), daemon=True)
+        t.start()
+        time.sleep(0.5)
+        rows.append(scenario("64MB-header", port, args, seen))
+        stop.set()
+        t.join(30)
 
     for name, reopen in (("idle-20000", False), ("reconnect-flood", True)):
+        if name not in args.only:
+            continue
         queue = multiprocessing.Queue()
         attackers = [multiprocessing.Process(target=hold_idle, args=(port, 10000, args.seconds + 4, reopen, queue))
                      for _ in range(2)]
@@ -176,13 +183,14 @@ def run(port: int, args) -> list[dict]:
         print(json.dumps(row["attackers"]), flush=True)
         rows.append(row)
 
-    stop, seen = threading.Event(), {}
-    t = threading.Thread(target=slow_clients, args=(port, 500, stop, seen), daemon=True)
-    t.start()
-    time.sleep(2)
-    rows.append(scenario("slow-500", port, args, seen))
-    stop.set()
-    t.join(30)
+    if "slow-500" in args.only:
+        stop, seen = threading.Event(), {}
+        t = threading.Thread(target=slow_clients, args=(port, 500, stop, seen), daemon=True)
+        t.start()
+        time.sleep(2)
+        rows.append(scenario("slow-500", port, args, seen))
+        stop.set()
+        t.join(30)
     rows.append(scenario("baseline-after", port, args, {}))
     return rows
 
@@ -196,6 +204,7 @@ def main() -> None:
     ap.add_argument("--attacker-nice", type=int, default=0,
                     help="run the idle and flood attackers at this niceness (19: the CPU is the server's first, as "
                          "with a remote attacker); they share this machine's cores otherwise")
+    ap.add_argument("--only", nargs="+", choices=SCENARIOS, default=SCENARIOS, help="these scenarios (default: all)")
     ap.add_argument("--json")
     args = ap.parse_args()
     global NICE

@@ -287,6 +287,59 @@ def test_a_client_that_stops_reading_is_closed() -> None:
     assert got > size and not closed  # the whole answer (and its head)
 
 
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+def test_a_silent_connection_holds_only_a_lobby(loop: str) -> None:
+    """In this process, on socket pairs: until its first byte a connection is a Lobby (no HTTP parser, no timer of
+    its own: one Deadlines timer serves them all); the first byte hands it to the HTTP protocol, which answers; at
+    the header timeout the silent ones get 408 as one JSON line, and their deadlines are gone."""
+    import asyncio
+
+    import uvicorn
+    import uvloop
+    from uvicorn.server import ServerState
+
+    from lsgan.serve.limits import Limits
+    from lsgan.serve.protocol import BoundedProtocol, Lobby, protocol_class
+
+    async def app(scope, receive, send):
+        await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    async def main() -> tuple[list, list, bytes, list[bytes], int]:
+        cls = protocol_class(Limits(header_timeout_s=0.5))
+        config = uvicorn.Config(app, http=cls, lifespan="off", log_level="warning")
+        config.load()
+        state, theirs = ServerState(), []
+        for _ in range(6):
+            ours, other = socket.socketpair()
+            await asyncio.get_running_loop().connect_accepted_socket(
+                lambda: cls(config=config, server_state=state, app_state={}), ours)
+            other.setblocking(False)
+            theirs.append(other)
+        silent_kinds = sorted({type(c).__mro__[1].__name__ for c in state.connections})
+        theirs[0].sendall(b"G")
+        await asyncio.sleep(0.05)
+        theirs[0].sendall(b"ET / HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        await asyncio.sleep(0.1)
+        kinds = sorted(type(c).__mro__[1].__name__ for c in state.connections)
+        answer = theirs[0].recv(4096)
+        await asyncio.sleep(0.8)
+        refusals = [t.recv(4096) for t in theirs[1:]]
+        for t in theirs:
+            t.close()
+        return silent_kinds, kinds, answer, refusals, len(cls.deadlines.entries)
+
+    run = asyncio.run if loop == "asyncio" else uvloop.run
+    silent_kinds, kinds, answer, refusals, left = run(main())
+    assert silent_kinds == [Lobby.__name__] and kinds == sorted([BoundedProtocol.__name__] + [Lobby.__name__] * 5)
+    assert answer.startswith(b"HTTP/1.1 200") and answer.endswith(b"ok")
+    for r in refusals:
+        assert r.startswith(b"HTTP/1.1 408") and b"request headers not received within 0.5 s" in r
+        assert json.loads(r.split(b"\r\n\r\n", 1)[1]) == {"error": "request headers not received within 0.5 s "
+                                                                       "(the limit)"}
+    assert left == 0
+
+
 def test_pipelines_cut_short_log_nothing(server: Server) -> None:
     """Three generate requests and a download pipelined, the client gone after reading a few bytes (or none):
     the server logs nothing (checked at the module's end) and keeps answering."""
@@ -352,6 +405,7 @@ def test_stalled_readers_and_uploads_at_shutdown(serve_models: Path) -> None:
         print(f"{len(socks)} stalled readers: the server holds {fds} descriptors")
         assert fds < 20 + 60  # the cap, plus the server's own files and pipes
         assert healthy_within(s) < HEALTHY_S
+        uploads += [socket.create_connection((s.host, s.port), timeout=10) for _ in range(3)]  # silent: lobbies
         for i in range(6):
             c = socket.create_connection((s.host, s.port), timeout=10)
             c.sendall(GEN(b'{"text": "a person walks"}')[:-5] if i % 2 else b"GET /healthz HTTP/1.1\r\nHo")

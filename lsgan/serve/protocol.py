@@ -11,6 +11,8 @@ connection (each bound is a :class:`lsgan.serve.limits.Limits` field and a comma
   its body within ``body_timeout_s`` of the head: else 408; a client that stops taking an answer is closed when it
   has taken nothing more for ``body_timeout_s``;
 - only HTTP/1.0 and 1.1: others (HTTP/0.9-style request lines, ``HTTP/2.0``) get 505; a malformed request 400;
+- until its first byte a connection is a :class:`Lobby`, a few fields and a shared deadline, not a full protocol:
+  a flood of silent connections costs the event loop a fifth as much per connection;
 - at most ``max_connections`` open: a new connection over it closes the connection that has waited longest
   without a request being answered (idle keep-alive, or a head still arriving); when every one is being
   answered, the newcomer gets a quick 503. So idle and slow clients cannot lock out a well-behaved one.
@@ -21,9 +23,10 @@ rather than waited for; requests whose body is in are answered (uvicorn's gracef
 """
 from __future__ import annotations
 
+import asyncio
 import http
 import json
-from collections import OrderedDict
+from collections import OrderedDict, deque
 
 import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
@@ -288,6 +291,96 @@ class BoundedProtocol(HttpToolsProtocol):
             super().shutdown()
 
 
-def protocol_class(limits: Limits) -> type[BoundedProtocol]:
-    """A :class:`BoundedProtocol` subclass for one server: its limits and its own connection registry."""
-    return type("LsganHttpProtocol", (BoundedProtocol,), {"limits": limits, "connections_of_server": Connections()})
+class Deadlines:
+    """Deadlines that all fall the same time after they are set, so they expire in the order they were set: one
+    timer serves them all (a timer each would cost a flood of silent connections a third more time)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds, self.entries, self.timer = seconds, deque(), None
+
+    def add(self, item, loop: asyncio.AbstractEventLoop) -> None:
+        """``item.expire()`` is called ``seconds`` from now (it checks itself whether that still matters)."""
+        self.entries.append((loop.time() + self.seconds, item))
+        if self.timer is None:
+            self.timer = loop.call_at(self.entries[0][0], self.fire, loop)
+
+    def fire(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.timer, now = None, loop.time()
+        while self.entries and self.entries[0][0] <= now:
+            self.entries.popleft()[1].expire()
+        if self.entries:
+            self.timer = loop.call_at(self.entries[0][0], self.fire, loop)
+
+
+class Lobby(asyncio.Protocol):
+    """A connection until its first byte arrives: counted, timed and evictable like any other, with none of the
+    HTTP machinery, which :meth:`data_received` builds then (a :class:`BoundedProtocol` takes the transport over).
+    A silent connection costs the event loop about 13 us instead of 60 us (2-core VM, uvloop), so in a flood of
+    them a well-behaved client, queued behind them for accepting, is reached about four times sooner."""
+
+    __slots__ = ("uvicorn_args", "server_state", "transport", "closed")
+    limits: Limits
+    connections_of_server: Connections
+    deadlines: Deadlines
+    protocol: type[BoundedProtocol]
+
+    def __init__(self, **uvicorn_args) -> None:  # config, server_state, app_state: what the protocol will need
+        self.uvicorn_args = uvicorn_args
+        self.server_state = uvicorn_args["server_state"]
+
+    def connection_made(self, transport) -> None:  # type: ignore[override]
+        self.transport, self.closed = transport, False
+        self.server_state.connections.add(self)
+        if not self.connections_of_server.admit(self, self.limits.max_connections):
+            self.refuse(Refusal(503, f"over {self.limits.max_connections} open connections (the limit); retry "
+                                     "shortly", retry_after=1))
+            return
+        self.deadlines.add(self, asyncio.get_running_loop())
+
+    def data_received(self, data: bytes) -> None:
+        if self.closed:
+            return
+        transport, protocol = self.transport, self.protocol(**self.uvicorn_args)
+        self.leave()
+        transport.set_protocol(protocol)
+        protocol.connection_made(transport)
+        protocol.data_received(data)
+
+    def expire(self) -> None:
+        if not self.closed:
+            self.refuse(Refusal(408, f"request headers not received within {self.limits.header_timeout_s:g} s "
+                                     "(the limit)"))
+
+    def leave(self) -> None:
+        """Out of the lobby: no longer counted here, and what it held is freed while its deadline waits."""
+        if not self.closed:
+            self.closed = True
+            self.connections_of_server.gone(self)
+            self.server_state.connections.discard(self)
+            self.transport = self.uvicorn_args = self.server_state = None
+
+    def connection_lost(self, exc) -> None:
+        self.leave()
+
+    def drop(self) -> None:
+        """Evicted, or the server is shutting down: closed at once (nothing has arrived, so nothing is owed)."""
+        transport = self.transport
+        self.leave()
+        transport.abort()
+
+    shutdown = drop
+
+    def refuse(self, refusal: Refusal) -> None:
+        transport, headers = self.transport, self.server_state.default_headers
+        self.leave()
+        transport.write(refusal_bytes(refusal.status, refusal.message, refusal.retry_after, headers))
+        transport.close()
+
+
+def protocol_class(limits: Limits) -> type[Lobby]:
+    """The protocol factory for one server: a :class:`Lobby` that hands over to a :class:`BoundedProtocol`, both
+    with the server's limits and its own connection registry."""
+    shared = {"limits": limits, "connections_of_server": Connections()}
+    protocol = type("LsganHttpProtocol", (BoundedProtocol,), shared)
+    return type("LsganLobby", (Lobby,), {**shared, "protocol": protocol, "deadlines": Deadlines(
+        limits.header_timeout_s), "__slots__": ()})

@@ -27,8 +27,8 @@ from lsgan.threads import usable_cpus
 
 MAX_WORKERS = 4  # engine processes by default: each holds its own copy of the models
 FILE_MARGIN = 256  # open files beside the connections: models, pipes to the engines, logs
-BACKLOG = 2048  # connections the kernel queues for accepting: in a flood a new client waits behind them (measured
-# 2026-11-26, 20,000 idle connections: 109 ms at worst at 2048, 143 ms at 4096), and past them its SYN is dropped
+BACKLOG = 4096  # connections the kernel queues for accepting (Linux caps it at net.core.somaxconn): in a flood a new
+# client waits behind them, about 13 us each (a lobby, lsgan.serve.protocol), and past them its SYN is dropped
 MAX_KEY_CHARS = 1024  # an API key fits in a request head whatever --max-header-bytes (at least 1,024) allows
 
 
