@@ -217,22 +217,104 @@ def test_idle_and_slow_clients_do_not_lock_out_others(server: Server) -> None:
     assert max(times) < HEALTHY_S and closed == len(idle) + len(slow)
 
 
-def test_every_connection_busy_gets_a_quick_503(server: Server) -> None:
-    """With the cap filled by requests whose bodies trickle in (being answered, not idle), a newcomer gets 503
-    with Retry-After at once; once their body deadline passes, service resumes."""
-    busy = []
+def test_trickling_bodies_and_lingering_refusals_do_not_lock_out_others(server: Server) -> None:
+    """The cap filled with requests whose bodies trickle in, then with malformed requests whose refusal lingers:
+    the client still owes them, so a newcomer closes the longest-waiting one and is answered."""
+    trickling = []
     for _ in range(CAP + 4):
         s = socket.create_connection((server.host, server.port), timeout=5)
         s.sendall(GEN(b'{"text": "a person walks"}', AUTH)[:-5])
-        busy.append(s)
+        trickling.append(s)
     time.sleep(0.3)
-    resp = exchange(server, head())
-    assert resp.status == 503 and resp.getheader("retry-after") == "1"
-    assert f"over {CAP} open connections" in json.loads(resp.body)["error"]
-    time.sleep(1.5)
-    for s in busy:
-        s.close()
     assert healthy_within(server) < HEALTHY_S
+    lingering = []
+    for _ in range(CAP + 4):
+        s = socket.create_connection((server.host, server.port), timeout=5)
+        s.sendall(b"GET /healthz HTTP/1.1\r\nHost: localhost\r\nbad header line\r\n\r\n")
+        lingering.append(s)
+    time.sleep(0.3)
+    assert healthy_within(server) < HEALTHY_S
+    for s in trickling + lingering:
+        s.close()
+
+
+def read_until_closed(sock: socket.socket, limit_s: float) -> tuple[bytes, float]:
+    """All ``sock`` receives until the server closes it (or ``limit_s`` passes), and when that was."""
+    got, start = b"", time.perf_counter()
+    sock.settimeout(limit_s)
+    try:
+        while chunk := sock.recv(4096):
+            got += chunk
+    except (TimeoutError, OSError):
+        pass
+    return got, time.perf_counter() - start
+
+
+def test_head_deadlines_count_from_the_opening_and_after_stray_bytes(server: Server) -> None:
+    """A first head counts from the connection's opening, not from its first byte (1 s, not 0.7 s + 1 s); blank
+    lines after an answer end the keep-alive wait, and what follows is held to the head deadline (it once held
+    the connection open for good)."""
+    s = socket.create_connection((server.host, server.port), timeout=10)
+    time.sleep(0.7)
+    s.sendall(b"G")
+    got, took = read_until_closed(s, 5)
+    s.close()
+    assert got.startswith(b"HTTP/1.1 408") and took < 0.7, (got, took)
+    s = socket.create_connection((server.host, server.port), timeout=10)
+    s.sendall(head())
+    time.sleep(0.2)
+    assert s.recv(4096).startswith(b"HTTP/1.1 200")
+    s.sendall(b"\r\n")
+    got, took = read_until_closed(s, 5)
+    s.close()
+    assert got.startswith(b"HTTP/1.1 408") and took < 2, (got, took)
+
+
+def test_deadlines_forget_closed_connections() -> None:
+    """A flood of connections that open and close at once leaves the shared deadline queue the size of those
+    still open, whatever the header timeout (a long one once kept every closed lobby until it passed)."""
+    import asyncio
+    from types import SimpleNamespace
+
+    from lsgan.serve.protocol import Deadlines
+
+    async def flood() -> tuple[int, int]:
+        deadlines, loop, still_open = Deadlines(3600), asyncio.get_running_loop(), []
+        for i in range(50_000):
+            item = SimpleNamespace(closed=i % 100 != 0)
+            deadlines.add(item, loop)
+            still_open += [] if item.closed else [item]
+        deadlines.timer.cancel()
+        return len(deadlines.entries), len(still_open)
+
+    entries, still_open = asyncio.run(flood())
+    assert still_open == 500 and entries <= 1024 + 2 * still_open
+
+
+def test_every_connection_busy_gets_a_quick_503(serve_models: Path) -> None:
+    """With the cap filled by requests being answered (clients that asked for the 1.5 MB docs script three times,
+    pipelined, and do not read it), a newcomer gets 503 with Retry-After at once; once they are closed as stalled (the body timeout),
+    service resumes."""
+    s = Server("--gan", "gan", "--vae", "vae", "--max-connections", 8, "--body-timeout", 1, cwd=serve_models)
+    busy = []
+    try:
+        for _ in range(8):
+            c = socket.socket()
+            c.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            c.connect((s.host, s.port))
+            c.sendall(head("/docs/swagger-ui-bundle.js") * 3)  # the second waits for the first to be taken
+            busy.append(c)
+        time.sleep(0.3)
+        resp = exchange(s, head())
+        assert resp.status == 503 and resp.getheader("retry-after") == "1"
+        assert "over 8 open connections" in json.loads(resp.body)["error"]
+        time.sleep(2.5)
+        assert healthy_within(s) < HEALTHY_S
+    finally:
+        for c in busy:
+            c.close()
+        assert s.stop() == 0, s.stderr
+    assert "Traceback" not in s.stderr and "ERROR" not in s.stderr, s.stderr
 
 
 def test_a_client_that_stops_reading_is_closed() -> None:
@@ -362,7 +444,10 @@ def test_pipelines_cut_short_log_nothing(server: Server) -> None:
     (("--api-key-file", "empty.txt"), "the API key is empty"),
     (("--max-connections", "10000000"), "--max-connections 10000000 needs"),
     (("--api-key", "k" * 1025), "at most 1024"),
-], ids=["non-ascii", "space", "empty", "key-twice", "empty-key-file", "connections-over-file-limit", "key-too-long"])
+    (("--header-timeout", "inf"), "inconsistent limits: header_timeout_s"),
+    (("--keep-alive", "1e9"), "inconsistent limits: keep_alive_s"),
+], ids=["non-ascii", "space", "empty", "key-twice", "empty-key-file", "connections-over-file-limit", "key-too-long",
+        "endless-header-timeout", "endless-keep-alive"])
 def test_bad_keys_and_limits_refused_at_start(args, phrase, serve_models: Path, tmp_path: Path) -> None:
     """Refused before anything loads (the CLI in this process): one line naming the problem, exit 1 (2 for
     usage), no traceback."""

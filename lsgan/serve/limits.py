@@ -5,6 +5,7 @@ from dataclasses import asdict, dataclass, replace
 
 MAX_SEED = 2**53 - 1  # the largest integer a JavaScript client can send back exactly
 TRAINED_FRAMES = 196  # HumanML3D's longest clip: the default bound of a model that could decode longer
+MAX_WAIT_S = 3600.0  # the longest any timeout may be: a larger one (or inf) would in effect switch its bound off
 
 
 @dataclass(frozen=True)
@@ -44,16 +45,16 @@ class Limits:
             ("max_num", self.max_num >= 1),
             ("max_body_bytes", self.max_body_bytes >= 64),
             ("max_in_flight", self.max_in_flight >= 1),
-            ("timeout_s", self.timeout_s > 0),
+            ("timeout_s", 0 < self.timeout_s <= MAX_WAIT_S),
             ("gather_ms", 0 <= self.gather_ms <= 1000),
             ("max_batch", self.max_batch >= self.max_num),
             ("store_size", self.store_size >= self.max_num),
             ("max_line_bytes", 64 <= self.max_line_bytes <= self.max_header_bytes),
             ("max_header_bytes", self.max_header_bytes >= 1024),
             ("max_headers", self.max_headers >= 8),
-            ("header_timeout_s", self.header_timeout_s > 0),
-            ("body_timeout_s", self.body_timeout_s > 0),
-            ("keep_alive_s", self.keep_alive_s > 0),
+            ("header_timeout_s", 0 < self.header_timeout_s <= MAX_WAIT_S),
+            ("body_timeout_s", 0 < self.body_timeout_s <= MAX_WAIT_S),
+            ("keep_alive_s", 0 < self.keep_alive_s <= MAX_WAIT_S),
             ("max_connections", self.max_connections >= 1),
         ) if not ok]
         if problems:

@@ -7,15 +7,16 @@ connection (each bound is a :class:`lsgan.serve.limits.Limits` field and a comma
 
 - the head (request line and headers) is fed to the parser only up to ``max_header_bytes``: past it, 431;
   a request line over ``max_line_bytes``: 414; more than ``max_headers`` headers: 431;
-- a request's head must arrive within ``header_timeout_s`` of its first byte (or of the connection opening),
-  its body within ``body_timeout_s`` of the head: else 408; a client that stops taking an answer is closed when it
+- a connection's first head must arrive within ``header_timeout_s`` of its opening, a later one within that of
+  its first byte (or of blank lines sent between requests), its body within ``body_timeout_s`` of the head: else 408; a client that stops taking an answer is closed when it
   has taken nothing more for ``body_timeout_s``;
 - only HTTP/1.0 and 1.1: others (HTTP/0.9-style request lines, ``HTTP/2.0``) get 505; a malformed request 400;
 - until its first byte a connection is a :class:`Lobby`, a few fields and a shared deadline, not a full protocol:
   a flood of silent connections costs the event loop a fifth as much per connection;
 - at most ``max_connections`` open: a new connection over it closes the connection that has waited longest
-  without a request being answered (idle keep-alive, or a head still arriving); when every one is being
-  answered, the newcomer gets a quick 503. So idle and slow clients cannot lock out a well-behaved one.
+  without a request being answered (idle keep-alive, a head or a body still arriving; a refused one lingering
+  goes first); when every one is being answered, the newcomer gets a quick 503. So idle and slow clients cannot
+  lock out a well-behaved one.
 
 Every refusal is the API's JSON ``{"error": "one line"}`` with ``Connection: close``, and nothing is logged for a
 client's misbehaviour. At shutdown, connections whose request has not fully arrived are closed at once (503)
@@ -96,6 +97,11 @@ class Connections:
     def busy(self, conn) -> None:
         self.waiting.pop(conn, None)
 
+    def first_out(self, conn) -> None:
+        """``conn`` is done with (refused, lingering): the first to close when room is needed."""
+        self.waiting[conn] = None
+        self.waiting.move_to_end(conn, last=False)
+
     def gone(self, conn) -> None:
         self.open.discard(conn)
         self.waiting.pop(conn, None)
@@ -106,10 +112,13 @@ class BoundedProtocol(HttpToolsProtocol):
 
     limits: Limits
     connections_of_server: Connections
+    opened_at: float | None = None  # when the connection opened, if before this protocol took it over (a Lobby's)
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self.head_bytes, self.in_head, self.closed, self.timer, self.header_count = 0, True, False, None, 0
+        self.head_start, self.requests = self.opened_at or self.loop.time(), 0  # the first head's deadline counts
+        # from the connection's opening, a later one's from its first byte
         self.running = None  # the request being answered (uvicorn's ``cycle`` is the newest parsed one)
         self.begun = False  # a request has begun to arrive and is not complete
         self.stall = None  # the deadline of a client that has stopped reading an answer
@@ -118,7 +127,7 @@ class BoundedProtocol(HttpToolsProtocol):
             self.refuse(Refusal(503, f"over {self.limits.max_connections} open connections (the limit); retry "
                                      "shortly", retry_after=1))
             return
-        self.arm(self.limits.header_timeout_s, "request headers")
+        self.arm_head()
 
     def connection_lost(self, exc) -> None:
         self.connections_of_server.gone(self)
@@ -143,6 +152,12 @@ class BoundedProtocol(HttpToolsProtocol):
     def arm(self, seconds: float, what: str) -> None:
         self.disarm()
         self.timer = self.loop.call_later(seconds, self.expire, seconds, what)
+
+    def arm_head(self) -> None:
+        """The head's deadline: ``header_timeout_s`` after ``head_start``."""
+        limit = self.limits.header_timeout_s
+        self.disarm()
+        self.timer = self.loop.call_at(self.head_start + limit, self.expire, limit, "request headers")
 
     def disarm(self) -> None:
         if self.timer is not None:
@@ -180,7 +195,7 @@ class BoundedProtocol(HttpToolsProtocol):
             self.transport.write(refusal_bytes(refusal.status, refusal.message, refusal.retry_after,
                                                self.server_state.default_headers))
         if self.begun and self.transport.can_write_eof():
-            self.connections_of_server.busy(self)
+            self.connections_of_server.first_out(self)
             self.transport.write_eof()
             self.timer = self.loop.call_later(LINGER_S, self.transport.abort)
         else:
@@ -213,12 +228,22 @@ class BoundedProtocol(HttpToolsProtocol):
             pass  # no protocol upgrades here: the request is answered as a plain one
         except httptools.HttpParserError as e:
             self.refuse(parser_refusal(e))
+            return
+        if not self.closed and not self.begun and self.timer is None and (
+                self.cycle is None or self.cycle.response_complete):
+            # bytes that began no request (blank lines between requests) ended the keep-alive wait: what follows
+            # is a head, with its deadline
+            self.head_start = self.loop.time()
+            self.arm_head()
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
         self.in_head, self.begun, self.header_count = True, True, 0
+        if self.requests:
+            self.head_start = self.loop.time()
+        self.requests += 1
         self.connections_of_server.wait(self)
-        self.arm(self.limits.header_timeout_s, "request headers")
+        self.arm_head()
 
     def on_url(self, url: bytes) -> None:
         super().on_url(url)
@@ -243,8 +268,7 @@ class BoundedProtocol(HttpToolsProtocol):
                            for k, v in self.headers):
             raise Refusal(400, "protocol upgrades are not served here, and the Upgrade header hides this request's "
                                "body: send it without Upgrade (HTTP/1.1)")
-        self.in_head, self.body_bytes = False, 0
-        self.connections_of_server.busy(self)
+        self.in_head, self.body_bytes = False, 0  # still evictable: the client owes the body
         self.arm(self.limits.body_timeout_s, "request body")
         super().on_headers_complete()
         if upgrade and self.cycle is not None:  # the parser stops here: nothing after this request is read
@@ -252,6 +276,7 @@ class BoundedProtocol(HttpToolsProtocol):
 
     def on_message_complete(self) -> None:
         self.disarm()
+        self.connections_of_server.busy(self)  # the request is in: being answered
         self.in_head, self.head_bytes, self.begun = True, 0, False  # next: the next request's head
         super().on_message_complete()
 
@@ -296,13 +321,20 @@ class Deadlines:
     timer serves them all (a timer each would cost a flood of silent connections a third more time)."""
 
     def __init__(self, seconds: float) -> None:
-        self.seconds, self.entries, self.timer = seconds, deque(), None
+        self.seconds, self.entries, self.timer, self.compact_at = seconds, deque(), None, 1024
 
-    def add(self, item, loop: asyncio.AbstractEventLoop) -> None:
-        """``item.expire()`` is called ``seconds`` from now (it checks itself whether that still matters)."""
-        self.entries.append((loop.time() + self.seconds, item))
+    def add(self, item, loop: asyncio.AbstractEventLoop) -> float:
+        """``item.expire()`` is called ``seconds`` from now (it checks itself whether that still matters, by
+        ``item.closed``); the deadline. The entries of closed items are dropped whenever they are over half of
+        all, so memory follows the items still open, not how many came and went."""
+        if len(self.entries) >= self.compact_at:
+            self.entries = deque(e for e in self.entries if not e[1].closed)
+            self.compact_at = max(1024, 2 * len(self.entries))
+        deadline = loop.time() + self.seconds
+        self.entries.append((deadline, item))
         if self.timer is None:
             self.timer = loop.call_at(self.entries[0][0], self.fire, loop)
+        return deadline
 
     def fire(self, loop: asyncio.AbstractEventLoop) -> None:
         self.timer, now = None, loop.time()
@@ -318,7 +350,7 @@ class Lobby(asyncio.Protocol):
     A silent connection costs the event loop about 13 us instead of 60 us (2-core VM, uvloop), so in a flood of
     them a well-behaved client, queued behind them for accepting, is reached about four times sooner."""
 
-    __slots__ = ("uvicorn_args", "server_state", "transport", "closed")
+    __slots__ = ("uvicorn_args", "server_state", "transport", "closed", "deadline")
     limits: Limits
     connections_of_server: Connections
     deadlines: Deadlines
@@ -335,12 +367,13 @@ class Lobby(asyncio.Protocol):
             self.refuse(Refusal(503, f"over {self.limits.max_connections} open connections (the limit); retry "
                                      "shortly", retry_after=1))
             return
-        self.deadlines.add(self, asyncio.get_running_loop())
+        self.deadline = self.deadlines.add(self, asyncio.get_running_loop())
 
     def data_received(self, data: bytes) -> None:
         if self.closed:
             return
         transport, protocol = self.transport, self.protocol(**self.uvicorn_args)
+        protocol.opened_at = self.deadline - self.limits.header_timeout_s
         self.leave()
         transport.set_protocol(protocol)
         protocol.connection_made(transport)
