@@ -57,7 +57,8 @@ def glide_motions() -> list[tuple[str, np.ndarray, np.ndarray]]:
     """24 gliding gaits (module docstring), 120 frames: a fast walk, slow, normal and fast runs, three seeds each,
     at 5 and 10 cm/frame; contacts (T,4) all True."""
     from lsgan.data.features import joints_to_features, recover_from_ric
-    from lsgan.data.synthetic import _assemble, _finish, _gait_pose
+    from lsgan.data.synthetic.gait import _gait_pose
+    from lsgan.data.synthetic.rig import _assemble, _finish
 
     out = []
     for seed in range(3):

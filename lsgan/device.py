@@ -13,3 +13,8 @@ def pick_device(name: str = "auto") -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda was asked for, but torch sees no CUDA device")
     return device
+
+
+def as_device(device: str | torch.device) -> torch.device:
+    """``device`` as a torch.device (the models' constructors take either)."""
+    return device if isinstance(device, torch.device) else torch.device(device)

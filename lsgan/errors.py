@@ -5,15 +5,15 @@ must be integers``) that leaves the user guessing which file is damaged.
 ``with reading(path, "a generate manifest"):`` around the code that interprets ``path`` turns the exceptions that
 damaged or foreign content raises (KeyError, TypeError, AttributeError, IndexError, ValueError, torch's
 RuntimeError) into a :class:`FileContentError`; an error that already starts with an existing path (lsgan's own
-messages) passes unchanged. :func:`checkpoint_reader` does the same for the functions that build a model from a
-checkpoint folder.
+messages) passes unchanged.
+(:func:`lsgan.models.checkpoint.checkpoint_reader` does the same for the functions that build a model from a
+checkpoint folder.)
 """
 from __future__ import annotations
 
 import errno
-import functools
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -56,21 +56,6 @@ def reading(path: str | os.PathLike, what: str, also: tuple[type[BaseException],
         if isinstance(e, FileContentError) or names_a_file(e) or _device_error(e):
             raise
         raise FileContentError(f"{path}: not {what} ({reason(e)})") from e
-
-
-def checkpoint_reader(load: Callable) -> Callable:
-    """A ``load(path, ..., prefer=...)`` that builds a model from a checkpoint, its errors naming the checkpoint's
-    config.json (a damaged one, or one of another lsgan version)."""
-
-    @functools.wraps(load)
-    def wrapper(path, *args, **kwargs):
-        from lsgan.models.checkpoint import CONFIG, resolve
-
-        folder = resolve(path, kwargs.get("prefer", args[1] if len(args) > 1 else "best"))
-        with reading(folder / CONFIG, "a checkpoint config this lsgan version reads"):
-            return load(path, *args, **kwargs)
-
-    return wrapper
 
 
 def name_write_error(error: BaseException, path: str | os.PathLike, written: str | os.PathLike | None = None) -> None:

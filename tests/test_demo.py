@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 from gltf_reader import parse
 
-from lsgan.demo import MIN_CLIPS, STAGES, demo_settings, scale_from_env
+from lsgan.demo.markers import STAGES
+from lsgan.demo.settings import MIN_CLIPS, demo_settings, scale_from_env
 from lsgan.recipes import load_recipe
 
 TINY = "0.05"
@@ -138,7 +139,7 @@ def test_demo_interrupted_continued_and_reused(tmp_path):
 
 def _fresh_keeps_user_files(out: Path) -> None:
     """Issue 28, B6: what ``demo --fresh`` clears of a finished demo holding the user's files here and there."""
-    from lsgan.demo import _clear_demo
+    from lsgan.demo.folder import _clear_demo
 
     mine = {out / "glb" / "my.glb": b"glb", out / "motions" / "notes.txt": b"n", out / "data" / "mocap.h5": b"h",
             out / "runs" / "vae" / "thesis.tex": b"t", out / "notes.md": b"m"}

@@ -21,20 +21,16 @@ from lsgan.data.preprocess import preprocess
 from lsgan.data.sources.synthetic import SyntheticSource
 from lsgan.data.tokens import tokenize
 from lsgan.models.evaluator import (
-    POS_ENUMERATOR,
     ActionClassifier,
     ActionClassifierConfig,
     ActionRecognitionGRU,
     EvaluatorConfig,
-    MotionEncoderBiGRUCo,
-    MovementConvEncoder,
-    TextEncoderBiGRUCo,
-    WordVectorizer,
-    contrastive_loss,
     load_action_classifier,
     load_evaluator,
     prepare_joints,
 )
+from lsgan.models.t2m_modules import MotionEncoderBiGRUCo, MovementConvEncoder, TextEncoderBiGRUCo, contrastive_loss
+from lsgan.models.word_vectorizer import POS_ENUMERATOR, WordVectorizer
 from lsgan.recipes import build, load_recipe, section
 from lsgan.train.evaluator import (
     ActionTrainConfig,

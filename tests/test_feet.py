@@ -11,8 +11,9 @@ from hypothesis import strategies as st
 
 from lsgan.data.features import joints_to_features, recover_from_ric
 from lsgan.data.sources.bvh import BvhSource
-from lsgan.data.synthetic import _assemble, _finish, _gait_pose
 from lsgan.data.synthetic import generate as synthetic_clips
+from lsgan.data.synthetic.gait import _gait_pose
+from lsgan.data.synthetic.rig import _assemble, _finish
 from lsgan.eval.quality import foot_pops, foot_skating_ratio, toe_above
 from lsgan.export.bvh import load_motion_joints
 from lsgan.export.feet import (

@@ -74,7 +74,8 @@ def test_nothing_is_appended_in_place():
 
 def test_every_path_option_is_an_input_or_an_output():
     """Each command's path options say what they are, so outputs are checked against inputs by construction."""
-    from lsgan.cli import In, main
+    from lsgan.cli import main
+    from lsgan.cli.options import In
 
     loose = [f"{name} {p.name}" for name, cmd in main.commands.items() for p in cmd.params
              if isinstance(p.type, click.Path) and not isinstance(p.type, In)]
@@ -262,7 +263,7 @@ def test_a_new_folder_that_got_a_made_folders_inode_is_the_users(tmp_path):
 
 def test_demo_fresh_clears_only_folders_the_demo_made(tmp_path):
     """The outside check's B2: a user's folder named like a demo folder (runs/, motions/) keeps its files."""
-    from lsgan.demo import _clear_demo
+    from lsgan.demo.folder import _clear_demo
 
     _write(tmp_path / "copy" / "a.npy", b"motion")
     (tmp_path / "copy").rename(tmp_path / "runs")

@@ -36,7 +36,8 @@ from lsgan.data.clip import ClipError
 from lsgan.data.sources.amass import read_body_model_file
 from lsgan.data.sources.humanact12 import HumanAct12Source
 from lsgan.models.checkpoint import load_state, load_torch_file, load_weights, read_meta, save_checkpoint, weights_hash
-from lsgan.models.evaluator import WordVectorizer, load_evaluator
+from lsgan.models.evaluator import load_evaluator
+from lsgan.models.word_vectorizer import WordVectorizer
 import lsgan.pickles
 from lsgan.pickles import (
     ALLOWED,
@@ -700,7 +701,8 @@ from lsgan.data.body_model import read_body_model
 from lsgan.data.sources.amass import read_body_model_file
 from lsgan.data.sources.humanact12 import HumanAct12Source
 from lsgan.models.checkpoint import load_state
-from lsgan.models.evaluator import WordVectorizer, load_evaluator
+from lsgan.models.evaluator import load_evaluator
+from lsgan.models.word_vectorizer import WordVectorizer
 d = Path(sys.argv[1])
 reads = {
     "body model .pkl": lambda: read_body_model(d / "smpl"),

@@ -26,8 +26,9 @@ from lsgan.data.shards import FORMAT_VERSION, Shard
 from lsgan.data.sources.humanml3d import HumanML3DSource, parse_caption_line
 from lsgan.data.sources.synthetic import SyntheticSource
 from lsgan.data.tokens import tokenize
-from lsgan.models.evaluator import (POS_ENUMERATOR, MotionEncoderBiGRUCo, MovementConvEncoder, TextEncoderBiGRUCo,
-                                    load_evaluator)
+from lsgan.models.evaluator import load_evaluator
+from lsgan.models.t2m_modules import MotionEncoderBiGRUCo, MovementConvEncoder, TextEncoderBiGRUCo
+from lsgan.models.word_vectorizer import POS_ENUMERATOR
 
 README_LINES = [  # HumanML3D's README (EricGuo5513/HumanML3D): texts/ID.txt as the dataset ships it
     "a man kicks something or someone with his left leg.#a/DET man/NOUN kick/VERB something/PRON or/CCONJ "

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
+from lsgan.export.fit import shortest_arc
 
 _I = JOINT_NAMES.index
 BENT_DEG = (8.0, 25.0)  # a limb's bend plane counts fully from 25 degrees of bend, not at all below 8
@@ -130,7 +131,6 @@ def measure_axes(global_rot: np.ndarray, aims: np.ndarray, refs: np.ndarray) -> 
 def aim_frames(aim: np.ndarray, axis: np.ndarray, goal: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Rotations (...,3,3) turning ``aim`` onto ``goal`` and ``axis`` (perpendicular to ``aim``) as close as
     possible to ``ref``; where ``ref`` lies along ``goal`` the twist is that of the shortest arc."""
-    from lsgan.export.bvh import shortest_arc  # bvh.py's IK imports this module
 
     g = unit(goal)
     s = perpendicular(ref, g)

@@ -45,7 +45,8 @@ from lsgan.data.clip import ClipError
 from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices, to_y_up
 from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.export.aim import aim_frames, measure_axes, reference_directions, standing_frames
-from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text, kabsch, shortest_arc
+from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text
+from lsgan.export.fit import kabsch, shortest_arc
 from lsgan.export.glb import bone_targets, pack_glb, skeleton_document, unit_quats
 from lsgan.io import atomic_file
 

@@ -14,9 +14,11 @@ naming it (never torch's suggestion to load it with ``weights_only=False``).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +27,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from lsgan import __version__
+from lsgan.errors import reading
 from lsgan.faults import fault_point
 from lsgan.io import atomic_folder
 from lsgan.pickles import load_torch
@@ -64,6 +67,19 @@ def resolve(path: str | os.PathLike, prefer: str = "best") -> Path:
         if (path / sub / CONFIG).exists():
             return path / sub
     raise FileNotFoundError(f"{path}: no checkpoint here (expected {CONFIG} and {WEIGHTS}, or best/ or last/ holding them)")
+
+
+def checkpoint_reader(load: Callable) -> Callable:
+    """A ``load(path, ..., prefer=...)`` that builds a model from a checkpoint, its errors naming the checkpoint's
+    config.json (a damaged one, or one of another lsgan version)."""
+
+    @functools.wraps(load)
+    def wrapper(path, *args, **kwargs):
+        folder = resolve(path, kwargs.get("prefer", args[1] if len(args) > 1 else "best"))
+        with reading(folder / CONFIG, "a checkpoint config this lsgan version reads"):
+            return load(path, *args, **kwargs)
+
+    return wrapper
 
 
 def _read_config(folder: Path) -> dict:

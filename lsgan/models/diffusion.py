@@ -37,8 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lsgan.errors import checkpoint_reader
-from lsgan.models.checkpoint import load_weights
+from lsgan.models.checkpoint import checkpoint_reader, load_weights
 from lsgan.models.gan import destandardise  # noqa: F401  (re-exported: the same latent space as the GANs')
 from lsgan.models.vae import PositionalEncoding, SkipTransformer
 

@@ -24,8 +24,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from lsgan.errors import checkpoint_reader
-from lsgan.models.checkpoint import load_weights, unwrap
+from lsgan.models.checkpoint import checkpoint_reader, load_weights, unwrap
 
 ArrayLike = Sequence[float] | np.ndarray | torch.Tensor
 

@@ -26,9 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from lsgan.errors import checkpoint_reader
 from lsgan.models.attention import attend
-from lsgan.models.checkpoint import load_weights
+from lsgan.models.checkpoint import checkpoint_reader, load_weights
 
 
 @dataclass

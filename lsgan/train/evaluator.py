@@ -54,11 +54,11 @@ from lsgan.models.evaluator import (
     EvaluatorConfig,
     EvaluatorNet,
     LearnedEvaluator,
-    contrastive_loss,
     load_action_classifier,
     load_learned_evaluator,
     prepare_joints,
 )
+from lsgan.models.t2m_modules import contrastive_loss
 from lsgan.train.common import seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Progress, Trainer, WindowTrainConfig, fit, launch
 

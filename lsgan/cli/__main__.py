@@ -1,0 +1,4 @@
+"""``python -m lsgan.cli``: the lsgan program."""
+from lsgan.cli import main
+
+main()

@@ -1,0 +1,125 @@
+"""Shared pieces of the commands: path parameters that declare what a command reads and writes, and the
+one-line failure and Ctrl-C helpers every command uses."""
+from __future__ import annotations
+
+import os
+import sys
+
+import click
+
+from lsgan.errors import debugging, describe
+
+
+INTERRUPTED = 130  # the shell's code for a process stopped by Ctrl-C (128 + SIGINT)
+
+
+class In(click.Path):
+    """A path the command reads. Every path option is an :class:`In` or an :class:`Out` (tests/test_outputs.py
+    checks it), so that :class:`LsganCommand` can refuse an output that is, holds or lies inside an input."""
+
+    role = "input"
+
+    def paths(self, value: str) -> list[str]:
+        return [value]
+
+
+class Out(In):
+    """A path the command writes (a file, a folder, or the stem of several files)."""
+
+    role = "output"
+
+
+class NamedIn(click.ParamType):
+    """``[NAME=]PATH``: an input path with an optional row name."""
+
+    name = "[NAME=]PATH"
+    role = "input"
+
+    def paths(self, value: str) -> list[str]:
+        return [value.rpartition("=")[2]] if "=" in value and not os.path.exists(value) else [value]
+
+
+class MaybeIn(click.ParamType):
+    """An input file when the value names an existing path; else a name (a built-in recipe) or inline text."""
+
+    name = "TEXT"
+    role = "input"
+
+    def paths(self, value: str) -> list[str]:
+        return [value] if os.path.exists(value) else []
+
+
+def declared_paths(command: click.Command, params: dict) -> tuple[list[str], list[str]]:
+    """The input and output paths given to ``command`` (``params`` as parsed), from its parameters' types."""
+    found: dict[str, list[str]] = {"input": [], "output": []}
+    for p in command.params:
+        role = getattr(p.type, "role", None)
+        values = params.get(p.name)
+        if role is None or values is None:
+            continue
+        for v in values if isinstance(values, (tuple, list)) else [values]:
+            found[role] += p.type.paths(os.fspath(v))
+    return found["input"], found["output"]
+
+
+def check_declared_paths(command: click.Command, params: dict) -> None:
+    """Refuse an output that is, holds or lies inside an input, or that overlaps another output."""
+    from lsgan.outputs import check_apart, check_inputs
+
+    ins, outs = declared_paths(command, params)
+    for out in outs:
+        check_inputs(out, ins)
+    check_apart(*outs)
+
+
+class LsganCommand(click.Command):
+    """A command whose declared outputs are checked against its declared inputs before it runs."""
+
+    def invoke(self, ctx: click.Context):
+        check_declared_paths(self, ctx.params)
+        return super().invoke(ctx)
+
+
+def fail(message: str) -> None:
+    """Print ``error: MESSAGE`` and exit 1; under --debug re-raise the exception being handled instead."""
+    if debugging() and sys.exc_info()[1] is not None:
+        raise sys.exc_info()[1]
+    close_progress_bars()
+    click.echo(f"error: {message}", err=True)
+    sys.exit(1)
+
+
+def close_progress_bars() -> None:
+    """Close unfinished tqdm bars, so the error line starts a line of its own."""
+    from tqdm import tqdm
+
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
+
+
+def stopped(hint: str) -> None:
+    """Ctrl-C: say what is kept and how to go on, and exit 130."""
+    click.echo(f"\ninterrupted: {hint}", err=True)
+    sys.exit(INTERRUPTED)
+
+
+def plainly(error: Exception) -> str:
+    """A command's failure as :func:`describe` words it; a missing text encoder's message says how to get it."""
+    from lsgan.models.text import TextEncoderUnavailable
+
+    return str(error) if isinstance(error, TextEncoderUnavailable) else describe(error)
+
+
+def load_recipe_or_fail(recipe: str | None) -> dict:
+    from lsgan.recipes import load_recipe
+
+    if recipe is None:
+        return {}
+    try:
+        return load_recipe(recipe)
+    except (FileNotFoundError, ValueError) as e:
+        fail(str(e))
+
+
+def with_overrides(values: dict, **options) -> dict:
+    return {**values, **{k: v for k, v in options.items() if v is not None}}

@@ -1,0 +1,18 @@
+"""Ctrl-C from the first instant: the lsgan program counts it before click and the commands are imported (~50 ms);
+:class:`lsgan.cli.group.LsganGroup` takes this guard over. Importing lsgan.cli from other code installs nothing."""
+from __future__ import annotations
+
+import os
+import sys
+
+from lsgan.interrupts import InterruptGuard
+
+
+def started_as_lsgan() -> bool:
+    """Whether this process is the lsgan program (the console script, or ``python -m lsgan.cli``)."""
+    argv = getattr(sys, "orig_argv", [])
+    as_module = any(flag == "-m" and name == "lsgan.cli" for flag, name in zip(argv, argv[1:]))
+    return as_module or os.path.splitext(os.path.basename(sys.argv[0]))[0] == "lsgan"
+
+
+startup_guard = [InterruptGuard(exiting=True)] if started_as_lsgan() else []
