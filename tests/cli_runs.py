@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import io
 import os
 import shutil
+import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 TINY_RECIPE = """
@@ -28,8 +31,17 @@ def lsgan(*args, cwd: Path, env: dict | None = None, fault: str | None = None,
     full_env.update({"OMP_NUM_THREADS": "1", **(env or {})})
     if fault:
         full_env["LSGAN_FAULT"] = fault
+        preexec_fn = functools.partial(_at_default_sigint, preexec_fn)
     return subprocess.run([sys.executable, "-m", "lsgan.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, env=full_env, timeout=600, preexec_fn=preexec_fn)
+
+
+def _at_default_sigint(then: Callable[[], None] | None) -> None:
+    """In the child: SIGINT at its default, as in a terminal (pytest run in the background ignores it, and so would
+    every lsgan it starts, so that a fault's Ctrl-C would go unseen); then ``then``."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    if then is not None:
+        then()
 
 
 TINY_PIPELINE = [
