@@ -241,37 +241,14 @@ def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, te
             of 32) and MM-Dist on the test split (else val).
     action: the action-recognition GRU (joints x 3, hidden 128, 2 layers, 30-d features); prints held-out accuracy.
     """
-    from lsgan.models.evaluator import ActionClassifierConfig, EvaluatorConfig
-    from lsgan.recipes import build, section
     from lsgan.train.common import TrainingDiverged
-    from lsgan.train.evaluator import (
-        ActionTrainConfig,
-        EvaluatorTrainConfig,
-        train_action_classifier,
-        train_evaluator,
-    )
+    from lsgan.train.evaluator import describe_heldout, train_from_recipe
 
     full = load_recipe_or_fail(recipe)
     try:
-        sections = section(full, "evaluator")
-        if kind is None:
-            present = [k for k in ("text", "action") if k in sections]
-            kind = present[0] if len(present) == 1 else "text"
-        r = section(sections, kind)
-        train_values = with_overrides(section(r, "train"), max_steps=max_steps, batch_size=batch_size, seed=seed)
-        if kind == "text":
-            model_values = dict(section(r, "model"))
-            if text_encoder or "text_encoder" not in model_values:
-                model_values["text_encoder"] = text_encoder or full.get("text_encoder") or "minilm"
-            result = train_evaluator(
-                list(data), out, config=build(EvaluatorConfig, model_values, "evaluator.text.model"),
-                train_config=build(EvaluatorTrainConfig, train_values, "evaluator.text.train"), device=device,
-                resume=resume, force=force, text_encoder_path=text_encoder_path)
-        else:
-            result = train_action_classifier(
-                list(data), out, config=build(ActionClassifierConfig, section(r, "model"), "evaluator.action.model"),
-                train_config=build(ActionTrainConfig, train_values, "evaluator.action.train"), device=device,
-                resume=resume, force=force)
+        result = train_from_recipe(data, out, full, kind=kind, text_encoder=text_encoder,
+                                   overrides={"max_steps": max_steps, "batch_size": batch_size, "seed": seed},
+                                   device=device, resume=resume, force=force, text_encoder_path=text_encoder_path)
     except KeyboardInterrupt:
         stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
@@ -279,17 +256,7 @@ def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, te
     except Exception as e:  # noqa: BLE001 - e.g. a text encoder whose weights are absent: say so plainly
         fail(plainly(e))
     click.echo(json.dumps(result, default=str), err=True)
-    h = result["heldout"]
-    if "r_precision_top3" in h:
-        click.echo(f"held-out ({h['split']}, {h['pairs']} pairs, groups of {h['group_size']}): R-precision "
-                   f"top-1 {h['r_precision_top1']:.3f}, top-2 {h['r_precision_top2']:.3f}, top-3 {h['r_precision_top3']:.3f} "
-                   f"(chance {h['chance_top1']:.3f}/{h['chance_top2']:.3f}/{h['chance_top3']:.3f}); "
-                   f"MM-Dist {h['mm_dist']:.3f}")
-    elif "accuracy" in h:
-        click.echo(f"held-out ({h['split']}, {h['clips']} clips): accuracy {h['accuracy']:.3f} "
-                   f"(chance {h['chance']:.3f}, majority class {h['majority']:.3f})")
-    else:
-        click.echo("no held-out split (test or val) to report on")
+    click.echo(describe_heldout(result["heldout"]))
 
 
 @main.command("train-diffusion", epilog="""\b

@@ -418,3 +418,42 @@ def _action_trainer(env: Env, ds: ActionWindows, val_ds: ActionWindows | None, c
         batches=EpochBatches(ds, sampler, seed=tcfg.seed, num_workers=tcfg.num_workers, pin=dev.type == "cuda"),
         extra=lambda p: {"action_names": ds.action_names, "data": paths, "val": p.val, "best_accuracy": p.best_value},
     )
+
+
+def train_from_recipe(data: Sequence[str | os.PathLike], out: str | os.PathLike, recipe: dict, *,
+                      kind: str | None = None, text_encoder: str | None = None, overrides: dict | None = None,
+                      **options) -> dict:
+    """``lsgan train-evaluator``: the recipe's ``evaluator:`` section (its ``text:`` or ``action:`` part; ``kind``
+    None: the one it holds, text when both or neither) with ``overrides`` of its train values, then
+    :func:`train_evaluator` or :func:`train_action_classifier` with ``options`` (device, resume, force, ...)."""
+    from lsgan.recipes import build, section
+
+    sections = section(recipe, "evaluator")
+    if kind is None:
+        present = [k for k in ("text", "action") if k in sections]
+        kind = present[0] if len(present) == 1 else "text"
+    r = section(sections, kind)
+    train_values = {**section(r, "train"), **{k: v for k, v in (overrides or {}).items() if v is not None}}
+    if kind == "action":
+        options.pop("text_encoder_path", None)
+        return train_action_classifier(
+            list(data), out, config=build(ActionClassifierConfig, section(r, "model"), "evaluator.action.model"),
+            train_config=build(ActionTrainConfig, train_values, "evaluator.action.train"), **options)
+    model_values = dict(section(r, "model"))
+    if text_encoder or "text_encoder" not in model_values:
+        model_values["text_encoder"] = text_encoder or recipe.get("text_encoder") or "minilm"
+    return train_evaluator(list(data), out, config=build(EvaluatorConfig, model_values, "evaluator.text.model"),
+                           train_config=build(EvaluatorTrainConfig, train_values, "evaluator.text.train"), **options)
+
+
+def describe_heldout(h: dict) -> str:
+    """One line for a run's held-out figures (R-precision and MM-Dist, or accuracy)."""
+    if "r_precision_top3" in h:
+        return (f"held-out ({h['split']}, {h['pairs']} pairs, groups of {h['group_size']}): R-precision "
+                f"top-1 {h['r_precision_top1']:.3f}, top-2 {h['r_precision_top2']:.3f}, top-3 "
+                f"{h['r_precision_top3']:.3f} (chance {h['chance_top1']:.3f}/{h['chance_top2']:.3f}/"
+                f"{h['chance_top3']:.3f}); MM-Dist {h['mm_dist']:.3f}")
+    if "accuracy" in h:
+        return (f"held-out ({h['split']}, {h['clips']} clips): accuracy {h['accuracy']:.3f} "
+                f"(chance {h['chance']:.3f}, majority class {h['majority']:.3f})")
+    return "no held-out split (test or val) to report on"
