@@ -1,9 +1,9 @@
-"""Clean feet (lsgan.export.feet) on generated motions: foot skating, sliding, steps and penetration, before and after.
+"""Clean feet (lsgan.motion.feet) on generated motions: foot skating, sliding, steps and penetration, before and after.
 
 Generates 100 motions (lsgan.generate.generate, the 100 prompts of lsgan.deploy.int8.REFERENCE_PROMPTS, 120
 frames, seed 0, CPU) with the trained Bandai runs, fixes their feet with the contacts of their own features
 (what ``lsgan export`` does by default) and reports, averaged over motions: GMD's foot-skating ratio and
-ground penetration (lsgan.eval.quality: frame pairs where a toe under 5 cm slides > 2.5 cm/frame; metres
+ground penetration (lsgan.motion.quality: frame pairs where a toe under 5 cm slides > 2.5 cm/frame; metres
 below y = 0 of the lowest joint), the share of frames with a toe above 5 cm, mean jerk, the fastest toe; the
 horizontal toe travel (m per motion) on frame pairs the model's own channels mark in contact (ankle or toe of
 that side), all of it and the part on the floor (toe under 2 cm above its lowest height in the clip in both
@@ -25,8 +25,8 @@ import numpy as np
 import torch
 
 from lsgan.deploy.int8 import REFERENCE_PROMPTS
-from lsgan.eval.quality import foot_skating_ratio, ground_penetration, jerk
-from lsgan.export.feet import LEG_JOINTS, contacts_from_features, fix_feet, ground_contacts, held_spans
+from lsgan.motion.quality import foot_skating_ratio, ground_penetration, jerk
+from lsgan.motion.feet import LEG_JOINTS, contacts_from_features, fix_feet, ground_contacts, held_spans
 from lsgan.generate import generate
 from lsgan.generation import Request
 

@@ -1,11 +1,11 @@
-"""Clean feet (lsgan.export.feet) before and after on saved motions and on Bandai mocap: skating, pops, jerk.
+"""Clean feet (lsgan.motion.feet) before and after on saved motions and on Bandai mocap: skating, pops, jerk.
 
 For each motion: the joints as given and after ``fix_feet`` with the contacts of its own features (what ``lsgan
-export`` does), optionally also after a ``--baseline`` copy of lsgan/export/feet.py (e.g. ``git show
-COMMIT:lsgan/export/feet.py > old_feet.py``). ``--glide`` makes the motions instead: synthetic walks, runs and
+export`` does), optionally also after a ``--baseline`` copy of lsgan/motion/feet.py (e.g. ``git show
+COMMIT:lsgan/motion/feet.py > old_feet.py``). ``--glide`` makes the motions instead: synthetic walks, runs and
 sprints (lsgan.data.synthetic) through the features, their whole body gliding on at 5 or 10 cm/frame with the feet
 marked in contact on every frame, as a generator's gliding motions come. Reports, averaged over motions
-(lsgan.eval.quality): GMD's foot-skating ratio, ground penetration (mm), jerk (m/s^3), the share of toe-frames
+(lsgan.motion.quality): GMD's foot-skating ratio, ground penetration (mm), jerk (m/s^3), the share of toe-frames
 above 5 cm, and pops (frame-to-frame ankle or toe moves over the original foot's fastest plus 2 cm: their count,
 the motions with any, the largest excess); the skating ratio also by root speed (under and over 2 m/s) and
 after the first second.
@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lsgan.eval.quality import POP_JOINTS, POP_SLACK, foot_pops, foot_skating_ratio, ground_penetration, jerk, toe_above
-from lsgan.export.feet import contacts_from_features, fix_feet
+from lsgan.motion.quality import POP_JOINTS, POP_SLACK, foot_pops, foot_skating_ratio, ground_penetration, jerk, toe_above
+from lsgan.motion.feet import contacts_from_features, fix_feet
 
 FAST = 2.0  # m/s: root speed that splits the bands
 

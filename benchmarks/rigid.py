@@ -7,7 +7,7 @@ to the quality columns.
 Generates the prompts x per-prompt motions once (``five``: PROMPTS, 20 each by default; ``reference``: the 100
 prompts of lsgan.deploy.int8.REFERENCE_PROMPTS, one each), then prints: per motion, the distance of the rigid
 joints from the decoded ones (mean and max over joints and frames, then over motions), the bone-length spread
-within a motion, and a markdown table of the quality metrics (lsgan.eval.quality, per-motion means) of the
+within a motion, and a markdown table of the quality metrics (lsgan.motion.quality, per-motion means) of the
 decoded, rigid, and rigid + ``fix_feet`` joints: skating ratio, penetration, floating, jerk, share of toe-frames
 above 5 cm, and pops (ankle or toe moves beyond the rigid motion's fastest of that foot + 2 cm: total, and the
 motions with any). Last, the motions whose feet were already clean (rigid skating ratio 0): how many stay so.
@@ -20,8 +20,8 @@ import numpy as np
 
 from lsgan.data.skeleton import bone_lengths
 from lsgan.deploy.int8 import REFERENCE_PROMPTS
-from lsgan.eval.quality import foot_pops, quality_metrics, toe_above
-from lsgan.export.feet import contacts_from_features, fix_feet
+from lsgan.motion.quality import foot_pops, quality_metrics, toe_above
+from lsgan.motion.feet import contacts_from_features, fix_feet
 from lsgan.generate import Request, generate
 
 PROMPTS = ("a person walks forward", "a person runs forward", "a person waves their right hand", "a person jumps up",

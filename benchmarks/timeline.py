@@ -9,8 +9,8 @@ Windows of 2 * ``--window`` + 1 frames (default +-5) are centred on each seam (t
 itself for hard cuts) and, as the reference, on the middle of each segment's own frames (outside any cross-fade).
 Per window:
 
-- jerk: lsgan.eval.quality.jerk of the window's frames (mean over joints and frame triples, m/s^3);
-- skating: GMD's foot-skating flags (lsgan.eval.quality.foot_skating_ratio's rule, computed over the whole motion
+- jerk: lsgan.motion.quality.jerk of the window's frames (mean over joints and frame triples, m/s^3);
+- skating: GMD's foot-skating flags (lsgan.motion.quality.foot_skating_ratio's rule, computed over the whole motion
   so the 5-frame speed average sees past the window's ends) averaged over the window's frame pairs;
 - slide: the mean horizontal step (cm/frame) of the feet in GMD's ground contact (under 5 cm) in the window.
 
@@ -32,7 +32,7 @@ from scipy.ndimage import uniform_filter1d
 from tqdm import tqdm
 
 from lsgan.data.captions import _CONTENT, _STYLE, bandai_captions
-from lsgan.eval.quality import SKATE_SPEED, SKATE_WINDOW, _feet, foot_skating_ratio, jerk
+from lsgan.motion.quality import SKATE_SPEED, SKATE_WINDOW, _feet, foot_skating_ratio, jerk
 from lsgan.generate import generate_loaded, load_models
 from lsgan.timeline import Segment, timeline_motion
 

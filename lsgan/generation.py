@@ -16,7 +16,7 @@ import numpy as np
 from lsgan import outputs
 from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS
-from lsgan.export.rigid import make_rigid
+from lsgan.motion.rigid import make_rigid
 from lsgan.io import atomic_file
 
 
@@ -57,7 +57,7 @@ class Motion:
     request: Request
     sample: int
     features: np.ndarray  # (T, 263), de-normalised
-    joints: np.ndarray  # (T, 22, 3): the motion of record, made rigid (lsgan.export.rigid)
+    joints: np.ndarray  # (T, 22, 3): the motion of record, made rigid (lsgan.motion.rigid)
     raw_joints: np.ndarray | None = None  # (T, 22, 3): recover_from_ric of the features, as decoded
 
 
@@ -71,13 +71,13 @@ def draw_noise(seed: int, n: int, dim: int) -> np.ndarray:
 
 def decoded_motion(request: Request, sample: int, features: np.ndarray, fix_feet: bool = False) -> Motion:
     """The Motion of decoded features (T, 263): joints recovered once and made rigid once, the raw ones kept.
-    ``fix_feet``: the feet held still while the features' contact channels say so (:mod:`lsgan.export.feet`),
+    ``fix_feet``: the feet held still while the features' contact channels say so (:mod:`lsgan.motion.feet`),
     once, on this motion of record, so that every output shows the same feet."""
     features = np.asarray(features, dtype=np.float32)
     raw = recover_from_ric(features)
     joints = make_rigid(raw)
     if fix_feet:
-        from lsgan.export.feet import contacts_from_features, fix_feet as hold_feet
+        from lsgan.motion.feet import contacts_from_features, fix_feet as hold_feet
 
         joints = hold_feet(joints, contacts_from_features(features)).astype(np.float32)
     return Motion(request=request, sample=sample, features=features, joints=joints, raw_joints=raw)

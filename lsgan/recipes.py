@@ -16,6 +16,7 @@ import yaml
 from lsgan.errors import reading
 
 T = TypeVar("T")
+U = TypeVar("U")
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
@@ -62,3 +63,15 @@ def section(recipe: dict[str, Any], name: str) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise ValueError(f"recipe section {name!r} must be a mapping")
     return value
+
+
+def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: type[U],
+            model_overrides: dict[str, Any] | None = None,
+            train_overrides: dict[str, Any] | None = None, where: str | None = None) -> tuple[T, U]:
+    """The recipe's ``kind:`` section as (model config, train config), each override that is not None replacing
+    the recipe's value: what every training command builds from a recipe and its options. ``where``: the
+    section's name in error messages (default ``kind``)."""
+    r, where = section(recipe, kind), where or kind
+    given = lambda values: {k: v for k, v in (values or {}).items() if v is not None}  # noqa: E731
+    return (build(model_cls, {**section(r, "model"), **given(model_overrides)}, f"{where}.model"),
+            build(train_cls, {**section(r, "train"), **given(train_overrides)}, f"{where}.train"))

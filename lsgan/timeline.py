@@ -159,19 +159,12 @@ def timeline_motion(segments: list[Segment], overlap: int, run: Callable[[list[R
 
 
 def generate_timeline(gan: str | os.PathLike, vae: str | os.PathLike | None, segments: list[Segment], *,
-                      overlap: int = DEFAULT_OVERLAP, source: str | None = None, runtime: str = "torch",
-                      int8: bool = False, seed: int = 0, device: str = "auto", text_encoder_path: str | None = None,
-                      batch_size: int = 256, steps: int | None = None,
-                      guidance: float | None = None, fix_feet: bool = False) -> Generation:
-    """One motion of sum(frames) from ``segments``, by the generator (torch checkpoints, or an ONNX export's folder
-    with ``runtime='onnx'``). Deterministic under ``seed``, like ``generate``; ``fix_feet`` as there."""
-    if runtime == "onnx":
-        from lsgan.deploy.runtime import load
-
-        model = load(gan, variant="int8" if int8 else "fp32")
-        return timeline_motion(segments, overlap, lambda r: model.generate(r, seed=seed, batch_size=batch_size,
-                                                                              fix_feet=fix_feet),
-                               model.max_frames, source)
+                      overlap: int = DEFAULT_OVERLAP, source: str | None = None, seed: int = 0,
+                      device: str = "auto", text_encoder_path: str | None = None, batch_size: int = 256,
+                      steps: int | None = None, guidance: float | None = None, fix_feet: bool = False) -> Generation:
+    """One motion of sum(frames) from ``segments``, by the generator's torch checkpoints (an ONNX export's:
+    :func:`lsgan.deploy.runtime.generate_timeline_onnx`). Deterministic under ``seed``, like ``generate``;
+    ``fix_feet`` as there."""
     from lsgan.generate import generate_loaded, load_models
 
     loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path)

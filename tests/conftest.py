@@ -8,17 +8,18 @@ import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 # The quick subset (`python -m pytest -q -m quick`: about 3.5 minutes on the 2-core CPU against ~22 for the whole
-# suite): whole modules, chosen so that every package of lsgan is exercised (tests/test_infra.py checks it).
+# suite): whole modules (or MODULE::TEST), chosen so that every layer of lsgan is imported (tests/test_layers.py
+# checks it).
 QUICK = ("test_bvh.py", "test_cli.py", "test_dataset.py", "test_export_bvh.py", "test_features.py", "test_gan.py",
          "test_infra.py", "test_jsonfmt.py", "test_layers.py", "test_metrics.py", "test_onnx_rewrite.py",
          "test_outputs.py", "test_pickles.py", "test_quality.py", "test_rigid.py", "test_serve_worker.py",
          "test_synthetic.py", "test_text.py", "test_textcache.py", "test_threads.py", "test_timeline.py",
-         "test_vae.py")
+         "test_vae.py", "test_demo.py::test_settings_follow_the_recipe_and_shrink_with_floors")
 
 
 def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
-        if item.path.name in QUICK:
+        if item.path.name in QUICK or f"{item.path.name}::{getattr(item, 'originalname', item.name)}" in QUICK:
             item.add_marker(pytest.mark.quick)
 
 

@@ -12,7 +12,7 @@ from lsgan.data.bvh import forward_kinematics, read_bvh
 from lsgan.data.skeleton import BONE_LENGTHS, JOINT_NAMES, PARENTS, bone_lengths
 from lsgan.data.synthetic import generate
 from lsgan.export.bvh import UNITS_PER_METRE, joints_to_bvh, write_bvh
-from lsgan.export.fit import rest_offsets, shortest_arc
+from lsgan.motion.fit import rest_offsets, shortest_arc
 
 LEAVES = {"head", "left_foot", "right_foot", "left_wrist", "right_wrist"}
 

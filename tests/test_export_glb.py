@@ -7,7 +7,7 @@ from gltf_reader import accessor, frame_count, parse, skinned_vertices, validate
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from lsgan.data.synthetic import generate
-from lsgan.export.fit import CHILDREN
+from lsgan.motion.fit import CHILDREN
 from lsgan.export.glb import joints_to_glb, write_glb
 
 

@@ -1,4 +1,4 @@
-"""Clean feet (lsgan.export.feet): plants and steps by leg IK on generated motions, and ``lsgan export --fix-feet``."""
+"""Clean feet (lsgan.motion.feet): plants and steps by leg IK on generated motions, and ``lsgan export --fix-feet``."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,9 +14,9 @@ from lsgan.data.sources.bvh import BvhSource
 from lsgan.data.synthetic import generate as synthetic_clips
 from lsgan.data.synthetic.gait import _gait_pose
 from lsgan.data.synthetic.rig import _assemble, _finish
-from lsgan.eval.quality import foot_pops, foot_skating_ratio, toe_above
+from lsgan.motion.quality import foot_pops, foot_skating_ratio, toe_above
 from lsgan.export.bvh import load_motion_joints
-from lsgan.export.feet import (
+from lsgan.motion.feet import (
     CHANNEL_JOINTS,
     LEG_JOINTS,
     REACH,
@@ -264,7 +264,7 @@ def test_generated_motions_and_cli(pipe: Path) -> None:
     """``generate --fix-feet`` holds the feet once, on the motion of record; ``export`` shows it as it is (the
     default and --no-fix-feet agree), and holds them again only when asked."""
     from lsgan.data.features import recover_from_ric
-    from lsgan.export.rigid import make_rigid
+    from lsgan.motion.rigid import make_rigid
 
     gen = pipe / "gen"
     for path in sorted(gen.glob("*_joints.npy")):

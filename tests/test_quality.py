@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lsgan.data.skeleton import PARENTS, TARGET_OFFSETS
-from lsgan.eval.quality import floating, foot_skating_ratio, ground_penetration, jerk, quality_metrics
+from lsgan.motion.quality import floating, foot_skating_ratio, ground_penetration, jerk, quality_metrics
 
 FPS = 20
 

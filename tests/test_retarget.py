@@ -465,7 +465,7 @@ def test_twist_follows_the_rig_convention_and_feet_touch_the_floor(case, turned,
     local axis that faces forward (knees, elbows) or down (soles) in the rig's own mocap faces that way in the
     retargeted walk, within 30 degrees at the median frame and 60 at worst; the rig's lowest foot point (joints
     and the End Sites at the toe tips) is within 1 cm of the floor in the walk's contact frames."""
-    from lsgan.export.feet import estimate_contacts
+    from lsgan.motion.feet import estimate_contacts
     from lsgan.export.retarget import metres_y_up
 
     rig, jmap = _twist_rig(case, request, tmp_path)

@@ -1,4 +1,4 @@
-"""One motion of record (lsgan.export.rigid): a generated motion is made rigid once, right after decoding, and every
+"""One motion of record (lsgan.motion.rigid): a generated motion is made rigid once, right after decoding, and every
 output shows that motion: ``generate``'s ``_joints.npy``, ``export --glb|--bvh`` and what ``lsgan serve`` sends.
 The model tests run on 100 motions of a really trained tiny model (conftest's ``serve_models``)."""
 from __future__ import annotations
@@ -16,7 +16,7 @@ from lsgan.data.bvh import forward_kinematics, read_bvh
 from lsgan.data.features import joints_to_features, recover_from_ric
 from lsgan.data.skeleton import BONE_LENGTHS, JOINT_NAMES, PARENTS, bone_lengths
 from lsgan.data.synthetic import generate as synthetic_clips
-from lsgan.export.rigid import make_rigid
+from lsgan.motion.rigid import make_rigid
 
 MM = 1e-3
 PROMPTS = ["a person walks forward#60", "someone waves the left hand#48", "a man jumps#80", "a woman squats down#40",

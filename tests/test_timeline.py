@@ -15,7 +15,7 @@ from cli_runs import lsgan
 
 from lsgan.data.features import joints_to_features, recover_from_ric, recover_root
 from lsgan.data.synthetic import generate as synthetic_clips
-from lsgan.export.rigid import make_rigid
+from lsgan.motion.rigid import make_rigid
 from lsgan.timeline import (
     TimelineError,
     check_segments,

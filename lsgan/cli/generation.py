@@ -128,8 +128,15 @@ def _generate_timeline(timeline: str, overlap: int | None, *, gan, vae, output, 
         fail(str(e))
     try:
         claim_generation(output, gan, *([vae] if vae else []), *([source] if source else []), force=force)
-        result = generate_timeline(gan, vae, segments, overlap=DEFAULT_OVERLAP if overlap is None else overlap,
-                                   source=source, **options)
+        overlap = DEFAULT_OVERLAP if overlap is None else overlap
+        if options.pop("runtime") == "onnx":
+            from lsgan.deploy.runtime import generate_timeline_onnx
+
+            result = generate_timeline_onnx(gan, segments, overlap=overlap, source=source, **{
+                k: options[k] for k in ("int8", "seed", "batch_size", "fix_feet")})
+        else:
+            options.pop("int8")
+            result = generate_timeline(gan, vae, segments, overlap=overlap, source=source, **options)
         manifest = write_generation(result, output, force=force, raw_joints=raw_joints)
     except (ValueError, FileNotFoundError) as e:
         fail(str(e))
@@ -204,11 +211,10 @@ Examples:
   lsgan export --glb out/ -o glb/                  # every motion of a generate folder
   lsgan export --glb out/ --body-model ~/models -o glb/   # SMPL body (skinned) + fitted .npz per motion
   lsgan export --glb walk.npy --body-model ~/models/smplx/SMPLX_MALE.npz --gender male -o walk.glb
-  lsgan export --bvh out/ -o bvh/
   lsgan export --bvh out/ -o bvh/                 # the motions of record, as generate wrote them
   lsgan export --bvh motion_features.npy --fps 30 -o motion.bvh
   lsgan export --gif out/ -o previews/             # stick-figure previews, captions as titles
-  lsgan export --mp4 out/ -o previews/             # the same as H.264 videos (ffmpeg comes with the package)
+  lsgan export --mp4 out/ -o videos/               # the same as H.264 videos (ffmpeg comes with the package)
   lsgan export --mp4 --title "a wave" out/000_wave_joints.npy --fps 30 -o wave.mp4
   lsgan export --bvh out/ --rig character.bvh --preset mixamo -o rig/   # on your character's skeleton
   lsgan export --bvh walk.npy --rig hero.bvh --joint-map hero_map.json -o walk_hero.bvh

@@ -119,7 +119,3 @@ def load_recipe_or_fail(recipe: str | None) -> dict:
         return load_recipe(recipe)
     except (FileNotFoundError, ValueError) as e:
         fail(str(e))
-
-
-def with_overrides(values: dict, **options) -> dict:
-    return {**values, **{k: v for k, v in options.items() if v is not None}}

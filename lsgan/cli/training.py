@@ -8,7 +8,7 @@ import sys
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, MaybeIn, Out, fail, load_recipe_or_fail, plainly, stopped, with_overrides
+from lsgan.cli.options import In, MaybeIn, Out, fail, load_recipe_or_fail, plainly, stopped
 
 
 @main.command(epilog="""\b
@@ -93,14 +93,13 @@ def train_on_cache(kind: str, model_config, train_config, model_options: dict, t
     """The recipe's ``kind`` section with the command's overrides, the cache checked against its VAE, then
     ``run(model config, train config, expected VAE hash)``; its summary on stderr, failures as one line."""
     from lsgan.models.cache import check_cache_vae
-    from lsgan.recipes import build, section
+    from lsgan.recipes import configs
     from lsgan.train.common import TrainingDiverged
 
-    r = section(load_recipe_or_fail(recipe), kind)
+    full = load_recipe_or_fail(recipe)
     try:
         expect = check_cache_vae(cache, vae=vae, allow_stale=allow_stale)
-        model = build(model_config, with_overrides(section(r, "model"), **model_options), f"{kind}.model")
-        train = build(train_config, with_overrides(section(r, "train"), **train_options), f"{kind}.train")
+        model, train = configs(full, kind, model_config, train_config, model_options, train_options)
         result = run(model, train, expect)
     except KeyboardInterrupt:
         stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
@@ -128,15 +127,14 @@ Examples:
 def train_vae_cmd(data, recipe, out, max_steps, batch_size, seed, device, resume, force) -> None:
     """Train the motion VAE (MLD's skip-transformer VAE) on the train split of one or more shards."""
     from lsgan.models.vae import VAEConfig
-    from lsgan.recipes import build, section
+    from lsgan.recipes import configs
     from lsgan.train.common import TrainingDiverged
     from lsgan.train.vae import VAETrainConfig, train_vae
 
-    r = section(load_recipe_or_fail(recipe), "vae")
+    full = load_recipe_or_fail(recipe)
     try:
-        model = build(VAEConfig, section(r, "model"), "vae.model")
-        train = build(VAETrainConfig, with_overrides(section(r, "train"), max_steps=max_steps, batch_size=batch_size,
-                                                seed=seed), "vae.train")
+        model, train = configs(full, "vae", VAEConfig, VAETrainConfig,
+                               train_overrides={"max_steps": max_steps, "batch_size": batch_size, "seed": seed})
         result = train_vae(list(data), out, model=model, train=train, device=device, resume=resume, force=force)
     except KeyboardInterrupt:
         stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")

@@ -4,7 +4,7 @@ The pipeline is the torch one (:func:`lsgan.generate.generate`) step by step: to
 tokenizer.json: lowercase WordPiece, truncated at its max length, padded to the longest prompt of a batch),
 text encoder (mean-pooled, L2-normalised embedding), generator (noise ~ N(0, 1), standardised latent),
 de-standardise (latent * std + mean), decoder (with a mask of the real frames), de-normalise
-(features * Std + Mean), joints by the HumanML3D recovery made rigid (:mod:`lsgan.export.rigid`). The noise is
+(features * Std + Mean), joints by the HumanML3D recovery made rigid (:mod:`lsgan.motion.rigid`). The noise is
 the same draw as torch's (:func:`lsgan.generation.draw_noise`), so one seed gives one motion in both runtimes.
 
 Sessions run one intra-op thread per usable core (``threads=``, ``LSGAN_THREADS`` or ``OMP_NUM_THREADS`` fix
@@ -251,3 +251,14 @@ def generate_onnx(folder: str | os.PathLike, requests: list[Request], *, num: in
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     return load(folder, variant=variant, threads=threads).generate(requests, num=num, seed=seed, noise=noise,
                                                                   batch_size=batch_size, fix_feet=fix_feet)
+
+
+def generate_timeline_onnx(folder: str | os.PathLike, segments: list, *, overlap: int, source: str | None = None,
+                           int8: bool = False, seed: int = 0, batch_size: int = 256,
+                           fix_feet: bool = False) -> Generation:
+    """:func:`lsgan.timeline.generate_timeline` on an ONNX export's folder: the same segments, seams and seed."""
+    from lsgan.timeline import timeline_motion
+
+    model = load(folder, variant="int8" if int8 else "fp32")
+    return timeline_motion(segments, overlap, lambda r: model.generate(r, seed=seed, batch_size=batch_size,
+                                                                          fix_feet=fix_feet), model.max_frames, source)

@@ -27,7 +27,7 @@ from lsgan import outputs
 from lsgan.io import atomic_file
 
 QUALITY_COLUMNS = ("foot_skating_ratio", "penetration_m", "floating_m", "jerk_m_s3")
-"""What animators read (lsgan.eval.quality): GMD's foot-skating ratio, ground penetration, floating, mean jerk."""
+"""What animators read (lsgan.motion.quality): GMD's foot-skating ratio, ground penetration, floating, mean jerk."""
 T2M_COLUMNS = ("r_precision_top1", "r_precision_top2", "r_precision_top3", "fid", "mm_dist", "diversity",
                "multimodality", *QUALITY_COLUMNS)
 VAE_COLUMNS = ("ape_root", "ape_traj", "ape_mean_pose", "ape_mean_joints", "ave_root", "ave_traj",
@@ -140,7 +140,7 @@ def _t2m_cells(table: Table, name: str, row: _Row, text_emb: np.ndarray, referen
 def _quality_cells(table: Table, name: str, motions: list[np.ndarray]) -> None:
     """The motion-quality figures of one row in one replication, on the joints recovered from its features."""
     from lsgan.data.features import recover_from_ric
-    from lsgan.eval.quality import quality_metrics
+    from lsgan.motion.quality import quality_metrics
 
     q = quality_metrics([recover_from_ric(m) for m in motions])
     for column in QUALITY_COLUMNS:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from lsgan.export.fit import shortest_arc
+from lsgan.motion.fit import shortest_arc
 
 _I = JOINT_NAMES.index
 BENT_DEG = (8.0, 25.0)  # a limb's bend plane counts fully from 25 degrees of bend, not at all below 8

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from lsgan.data.bvh import POSITION_CHANNELS, ROTATION_CHANNELS
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from lsgan.export.fit import CHILDREN, kabsch, rest_offsets
+from lsgan.motion.fit import CHILDREN, kabsch, rest_offsets
 from lsgan.io import atomic_file
 
 UNITS_PER_METRE = 100.0
@@ -226,7 +226,7 @@ def load_motion_joints(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
     from lsgan.data.clip import load_npy
     from lsgan.data.features import recover_from_ric
     from lsgan.data.skeleton import FEATURE_DIM
-    from lsgan.export.rigid import make_rigid
+    from lsgan.motion.rigid import make_rigid
 
     path = Path(path)
     if path.is_dir():

@@ -2,7 +2,7 @@
 
 The file holds a "lsgan_motion" root node whose only child is the pelvis; below it one node per SMPL joint
 (named after ``JOINT_NAMES``, children per ``PARENTS``) whose rest translation is the fitted rest offset
-(:func:`lsgan.export.fit.rest_offsets`, metres) and whose rest rotation is the first frame's pose. The joint
+(:func:`lsgan.motion.fit.rest_offsets`, metres) and whose rest rotation is the first frame's pose. The joint
 nodes are the joints of a glTF skin: one skinned mesh (a scene root node, "lsgan_skeleton") made of trimesh
 primitives, an icosphere at every joint and a capsule along every bone of at least ``MIN_BONE_M`` (leaves get a
 stub of ``STUB_FRACTION`` of their own bone), each vertex bound to one joint, so Blender and engines import an
@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from lsgan.data.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from lsgan.export.bvh import checked_motion, joint_rotations
-from lsgan.export.fit import rest_offsets
+from lsgan.motion.fit import rest_offsets
 from lsgan.io import atomic_file
 
 GLB_MAGIC = 0x46546C67  # b"glTF" little endian

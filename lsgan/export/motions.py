@@ -59,7 +59,7 @@ def export_motions(source: str | Path, output: str | Path, *, fmt: str, fps: flo
     With ``rig`` (a BVH file; BVH or GLB) each motion is retargeted onto that skeleton through the joint map
     ``joint_map`` (a JSON file) or ``preset`` (:mod:`lsgan.export.retarget`).
 
-    ``fix_feet`` (True) holds the feet still while in contact (:mod:`lsgan.export.feet`), with the contacts of each
+    ``fix_feet`` (True) holds the feet still while in contact (:mod:`lsgan.motion.feet`), with the contacts of each
     motion's features (a generate folder's ``*_features.npy``, or a features .npy), else contacts estimated from
     the joints. None or False (the default) exports the motions as they are: a generate folder's already carry
     the feet ``lsgan generate`` gave them, so the export shows the motion of record.
@@ -158,9 +158,9 @@ def checked_motions(source: Path, motions: list[tuple[str, np.ndarray]], fps: fl
 
 
 def clean_feet(source: str | Path, motions: list[tuple[str, np.ndarray]], fix: bool | None) -> list:
-    """``motions`` with :func:`lsgan.export.feet.fix_feet` applied as ``export_motions``'s ``fix_feet`` says."""
+    """``motions`` with :func:`lsgan.motion.feet.fix_feet` applied as ``export_motions``'s ``fix_feet`` says."""
     from lsgan.data.clip import load_npy
-    from lsgan.export.feet import contacts_from_features, estimate_contacts, fix_feet
+    from lsgan.motion.feet import contacts_from_features, estimate_contacts, fix_feet
 
     if not fix:  # generated motions carry the feet generate gave them (lsgan.generation.decoded_motion)
         return motions

@@ -11,7 +11,7 @@ rig joints named directly are *mapped* (``between`` entries only place SMPL join
   ancestor with all three; the pelvis joint's ancestors keep their rest rotation. It is then raised or lowered
   so that the rig's lowest foot point (its foot joints and the End Sites below them: a toe's tip) is as high as
   our lowest foot joint in every frame where one of our feet is in contact
-  (:func:`lsgan.export.feet.estimate_contacts`), interpolated between them (:func:`floor_lift`): the rig stands
+  (:func:`lsgan.motion.feet.estimate_contacts`), interpolated between them (:func:`floor_lift`): the rig stands
   on our floor whatever its proportions and wherever its root joint sits.
 - Mapped joints, by IK on directions: the chain of rig joints from a mapped joint to the next mapped joint
   below it is turned so that it points along our bone between the two. A joint starting several chains (the
@@ -46,7 +46,7 @@ from lsgan.data.joint_maps import JointMap, apply_joint_map, map_indices, to_y_u
 from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.export.aim import aim_frames, measure_axes, reference_directions, standing_frames
 from lsgan.export.bvh import bvh_text, channel_values, checked_motion, hierarchy_text
-from lsgan.export.fit import kabsch, shortest_arc
+from lsgan.motion.fit import kabsch, shortest_arc
 from lsgan.export.glb import bone_targets, pack_glb, skeleton_document, unit_quats
 from lsgan.io import atomic_file
 
@@ -251,7 +251,7 @@ def floor_lift(j: np.ndarray, feet: np.ndarray) -> np.ndarray:
     """Heights (T,) to raise the rig by so that its lowest foot point, ``feet`` (T,F,3: our frame, metres), is as
     high as our lowest foot joint in every frame where one of ours is in contact (estimated from ``j`` (T,22,3)),
     interpolated between those frames (the median difference throughout when ours never touches down)."""
-    from lsgan.export.feet import estimate_contacts
+    from lsgan.motion.feet import estimate_contacts
 
     gap = j[:, _FEET, 1].min(axis=1) - feet[..., 1].min(axis=1)
     contact = np.flatnonzero(estimate_contacts(j.astype(np.float32)).any(axis=1))

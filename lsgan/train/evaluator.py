@@ -426,24 +426,23 @@ def train_from_recipe(data: Sequence[str | os.PathLike], out: str | os.PathLike,
     """``lsgan train-evaluator``: the recipe's ``evaluator:`` section (its ``text:`` or ``action:`` part; ``kind``
     None: the one it holds, text when both or neither) with ``overrides`` of its train values, then
     :func:`train_evaluator` or :func:`train_action_classifier` with ``options`` (device, resume, force, ...)."""
-    from lsgan.recipes import build, section
+    from lsgan.recipes import configs, section
 
     sections = section(recipe, "evaluator")
     if kind is None:
         present = [k for k in ("text", "action") if k in sections]
         kind = present[0] if len(present) == 1 else "text"
-    r = section(sections, kind)
-    train_values = {**section(r, "train"), **{k: v for k, v in (overrides or {}).items() if v is not None}}
     if kind == "action":
         options.pop("text_encoder_path", None)
-        return train_action_classifier(
-            list(data), out, config=build(ActionClassifierConfig, section(r, "model"), "evaluator.action.model"),
-            train_config=build(ActionTrainConfig, train_values, "evaluator.action.train"), **options)
-    model_values = dict(section(r, "model"))
-    if text_encoder or "text_encoder" not in model_values:
-        model_values["text_encoder"] = text_encoder or recipe.get("text_encoder") or "minilm"
-    return train_evaluator(list(data), out, config=build(EvaluatorConfig, model_values, "evaluator.text.model"),
-                           train_config=build(EvaluatorTrainConfig, train_values, "evaluator.text.train"), **options)
+        config, train_config = configs(sections, "action", ActionClassifierConfig, ActionTrainConfig, None, overrides,
+                                       "evaluator.action")
+        return train_action_classifier(list(data), out, config=config, train_config=train_config, **options)
+    encoder = None  # the recipe's evaluator model names one; else the option, the recipe's own, MiniLM
+    if text_encoder or "text_encoder" not in section(section(sections, "text"), "model"):
+        encoder = text_encoder or recipe.get("text_encoder") or "minilm"
+    config, train_config = configs(sections, "text", EvaluatorConfig, EvaluatorTrainConfig,
+                                   {"text_encoder": encoder}, overrides, "evaluator.text")
+    return train_evaluator(list(data), out, config=config, train_config=train_config, **options)
 
 
 def describe_heldout(h: dict) -> str:

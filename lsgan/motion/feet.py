@@ -1,7 +1,7 @@
 """Clean feet: plant each foot while it is in contact and step it on, by IK on the leg only (``export --fix-feet``).
 
 Pure numpy on joint positions (T,22,3): HumanML3D joint order, Y up, metres, the floor at y = 0 (as
-:mod:`lsgan.eval.quality` reads it). Contacts are (T,4) per frame for [left ankle 7, left foot 10, right
+:mod:`lsgan.motion.quality` reads it). Contacts are (T,4) per frame for [left ankle 7, left foot 10, right
 ankle 8, right foot 11], the order of HumanML3D's feature channels 259-262.
 
 Contacts. A feature row t says whether the joint moved less than sqrt(0.002) = 4.5 cm between frames t and
@@ -18,7 +18,7 @@ fast body carries along, and generated sprints come with none marked.
 
 Plants and steps (per side, planned over the whole clip). A stance run whose toe stays within ``STILL_TOE`` of
 where it rests (on the frames it is on the floor) is planted already and left as it is, and so is one whose toe
-never skates by GMD's rule (:func:`lsgan.eval.quality.skating_pairs`: under 5 cm and faster than 2.5 cm a frame):
+never skates by GMD's rule (:func:`lsgan.motion.quality.skating_pairs`: under 5 cm and faster than 2.5 cm a frame):
 feet the field counts as clean stay clean, a glide slower than that included (steps under 5 cm would count as
 skating, and steps higher than that to carry a slow glide would look like marching). Any other starts with a
 plant where the toe comes down and to rest within ``ENTRY_FRAMES`` (the foot eases onto it), lifted onto the
@@ -57,7 +57,7 @@ import numpy as np
 from lsgan.data.features import FOOT_CONTACT, foot_contacts
 from lsgan.data.kinematics import facing_across, forward_from_across
 from lsgan.data.skeleton import FACE_JOINTS, NUM_JOINTS
-from lsgan.eval.quality import skating_pairs
+from lsgan.motion.quality import skating_pairs
 
 CHANNEL_JOINTS = (7, 10, 8, 11)  # the contact channels' joints: left ankle, left foot, right ankle, right foot
 SIDES = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot joint of the left and right leg
@@ -174,7 +174,7 @@ class _Leg:
         self.foot = np.linalg.norm(self.F - self.A, axis=-1)
         self.pitch = np.arcsin(np.clip((self.A - self.F)[:, 1] / np.maximum(self.foot, 1e-12), -1.0, 1.0))
         self.heel_up = heel_up  # (T,) frames whose ankle is off the ground: a plant follows the original's heel
-        self.skates = skates  # (T-1,) frame pairs where the toe skates by GMD's rule (lsgan.eval.quality)
+        self.skates = skates  # (T-1,) frame pairs where the toe skates by GMD's rule (lsgan.motion.quality)
         legs = np.linalg.norm(self.K - self.H, axis=-1) + np.linalg.norm(self.A - self.K, axis=-1)
         self.reach = np.maximum(REACH * legs, np.linalg.norm(self.A - self.H, axis=-1))
         self.floor = floor

@@ -11,7 +11,7 @@ moved the joints of 60 motions of a small demo model (``lsgan demo --scale 0.05`
 against 7.2, at most 175 against 31 mm) and sank their feet by 42 mm on average (0.4 mm with the median): its legs
 are not the legs the model stood on the floor; pass it as ``lengths`` to give every motion one skeleton. The
 layout of the two branching joints' children (pelvis: hips and spine; spine3: neck and collars) is the motion's
-own mean layout (:func:`lsgan.export.fit.rest_offsets`).
+own mean layout (:func:`lsgan.motion.fit.rest_offsets`).
 
 Joints are re-posed by forward kinematics from the root: a single child lies along the decoded bone's direction at
 its length; the children of a branching joint are its rigid layout turned by the Kabsch fit onto the decoded
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from lsgan.data.skeleton import NUM_JOINTS, PARENTS, bone_lengths
-from lsgan.export.fit import CHILDREN, kabsch, rest_offsets
+from lsgan.motion.fit import CHILDREN, kabsch, rest_offsets
 
 _PARENTS = np.array(PARENTS)
 _BRANCHING = tuple(k for k in range(NUM_JOINTS) if len(CHILDREN[k]) > 1)  # pelvis and spine3
