@@ -7,7 +7,7 @@ import pytest
 import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
-# The quick subset (`python -m pytest -q -m quick`: 3 min 20 s on the 2-core CPU against 18-21 for the whole
+# The quick subset (`python -m pytest -q -m quick`: 3 minutes on the 2-core CPU against 18-21 for the whole
 # suite): whole modules (or MODULE::TEST), chosen so that every layer of lsgan is imported (tests/test_layers.py
 # checks it).
 QUICK = ("test_bvh.py", "test_cli.py", "test_dataset.py", "test_export_bvh.py", "test_features.py", "test_gan.py",
