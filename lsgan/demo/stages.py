@@ -93,13 +93,11 @@ def _preprocess(run: Run) -> tuple[str, dict]:
 
 def _train_vae(run: Run) -> tuple[str, dict]:
     from lsgan.models.vae import VAEConfig
-    from lsgan.recipes import build, section
     from lsgan.train.vae import VAETrainConfig, train_vae
 
-    v, p = section(run.recipe, "vae"), run.paths
-    model = build(VAEConfig, section(v, "model"), "vae.model")
-    train, resume = _training(run, "train-vae", "vae", v, VAETrainConfig, run.settings.vae_steps,
-                              ("val_every", "ckpt_every", "log_every"))
+    p = run.paths
+    model, train, resume = _training(run, "train-vae", "vae", ("vae",), VAEConfig, VAETrainConfig,
+                                     run.settings.vae_steps, ("val_every", "ckpt_every", "log_every"))
     # the demo's own run folder: without a checkpoint to resume, a start's leftovers (logs) are cleared
     res = train_vae(p["data"], p["vae"], model=model, train=train, device=run.device, resume=resume,
                     force=not resume, progress=run.progress)
@@ -108,15 +106,16 @@ def _train_vae(run: Run) -> tuple[str, dict]:
         "note": f"validation MPJPE {res['best_val_mpjpe_m']:.3f} m" if res["best_val_mpjpe_m"] else ""}
 
 
-def _training(run: Run, stage: str, folder: str, recipe: dict, train_cls, steps: int, intervals: tuple[str, ...],
-              label: str | None = None):
-    """A training stage's settings (the recipe section's ``train:`` scaled to ``steps``) and whether its run folder
-    holds a checkpoint to resume. The folder is the demo's own: one started on other inputs is cleared."""
-    from lsgan.recipes import build, section
+def _training(run: Run, stage: str, folder: str, kind: tuple[str, ...], model_cls, train_cls, steps: int,
+              intervals: tuple[str, ...], model_overrides: dict | None = None):
+    """A training stage's model and train configs (the recipe's section at ``kind``, e.g. ``("evaluator", "text")``,
+    its ``train:`` scaled to ``steps``) and whether its run folder holds a checkpoint to resume. The folder is the
+    demo's own: one started on other inputs is cleared."""
+    from lsgan.recipes import configs
 
-    name = label or folder
-    train = _scale_train(build(train_cls, section(recipe, "train"), f"{name}.train"), steps, intervals)
-    return train, prepare_run_folder(run.paths[folder], run.stages.inputs(stage))
+    model, train = configs(_section2(run.recipe, *kind[:-1]), kind[-1], model_cls, train_cls, model_overrides, where=".".join(kind))
+    return model, _scale_train(train, steps, intervals), prepare_run_folder(run.paths[folder],
+                                                                            run.stages.inputs(stage))
 
 
 def _encode_latents(run: Run) -> tuple[str, dict]:
@@ -134,13 +133,11 @@ def _encode_latents(run: Run) -> tuple[str, dict]:
 def _train_gan(run: Run) -> tuple[str, dict]:
     from lsgan.models.checkpoint import weights_hash
     from lsgan.models.gan import GANConfig
-    from lsgan.recipes import build, section
     from lsgan.train.gan import GANTrainConfig, train_gan
 
-    g, p = section(run.recipe, "gan"), run.paths
-    gan = build(GANConfig, section(g, "model"), "gan.model")
-    train, resume = _training(run, "train-gan", "gan", g, GANTrainConfig, run.settings.gan_steps,
-                              ("eval_every", "ckpt_every", "log_every"))
+    p = run.paths
+    gan, train, resume = _training(run, "train-gan", "gan", ("gan",), GANConfig, GANTrainConfig,
+                                   run.settings.gan_steps, ("eval_every", "ckpt_every", "log_every"))
     res = train_gan(p["cache"], p["gan"], gan=gan, train=train, device=run.device, resume=resume,
                     force=not resume, progress=run.progress, expect_vae_hash=weights_hash(p["vae"]))
     fid = res["best_val_latent_fid"]
@@ -152,18 +149,16 @@ def _train_gan(run: Run) -> tuple[str, dict]:
 
 def _train_evaluator(run: Run) -> tuple[str, dict]:
     from lsgan.models.evaluator import EvaluatorConfig
-    from lsgan.recipes import build, section
     from lsgan.train.evaluator import EvaluatorTrainConfig, train_evaluator
 
-    e, p = section(section(run.recipe, "evaluator"), "text"), run.paths
-    model = dict(section(e, "model"))
-    model.setdefault("text_encoder", run.recipe.get("text_encoder") or "minilm")
-    train, resume = _training(run, "train-evaluator", "evaluator", e, EvaluatorTrainConfig,
-                              run.settings.evaluator_steps, ("val_every", "ckpt_every", "log_every"),
-                              label="evaluator.text")
-    res = train_evaluator(p["data"], p["evaluator"], config=build(EvaluatorConfig, model, "evaluator.text.model"),
-                          train_config=train, device=run.device, resume=resume, force=not resume,
-                          progress=run.progress)
+    p = run.paths
+    named = "text_encoder" in _section2(run.recipe, "evaluator", "text", "model")
+    encoder = None if named else run.recipe.get("text_encoder") or "minilm"
+    config, train, resume = _training(run, "train-evaluator", "evaluator", ("evaluator", "text"), EvaluatorConfig,
+                                      EvaluatorTrainConfig, run.settings.evaluator_steps,
+                                      ("val_every", "ckpt_every", "log_every"), {"text_encoder": encoder})
+    res = train_evaluator(p["data"], p["evaluator"], config=config, train_config=train, device=run.device,
+                          resume=resume, force=not resume, progress=run.progress)
     h = res["heldout"]
     note = (f"held-out R-precision top-3 {h['r_precision_top3']:.3f} (chance {h['chance_top3']:.3f})"
             if "r_precision_top3" in h else "")
