@@ -26,12 +26,13 @@ from lsgan.eval import metrics as M
 from lsgan import outputs
 from lsgan.io import atomic_file
 
-QUALITY_COLUMNS = ("foot_skating_ratio", "penetration_m", "floating_m", "jerk_m_s3")
-"""What animators read (lsgan.motion.quality): GMD's foot-skating ratio, ground penetration, floating, mean jerk."""
+QUALITY_COLUMNS = ("foot_skating_ratio", "penetration_m", "floating_m", "jerk_m_s3", "bone_std_mm")
+"""What animators read (lsgan.motion.quality): GMD's foot-skating ratio, ground penetration, floating, mean jerk,
+bone-length variation (before any rigid fit)."""
 T2M_COLUMNS = ("r_precision_top1", "r_precision_top2", "r_precision_top3", "fid", "mm_dist", "diversity",
                "multimodality", *QUALITY_COLUMNS)
 VAE_COLUMNS = ("ape_root", "ape_traj", "ape_mean_pose", "ape_mean_joints", "ave_root", "ave_traj",
-               "ave_mean_pose", "ave_mean_joints", "mpjpe", "fid")
+               "ave_mean_pose", "ave_mean_joints", "mpjpe", "mpjpe_rel", "fid", *QUALITY_COLUMNS)
 ACTION_COLUMNS = ("fid", "accuracy", "diversity", "multimodality")
 FID_REFERENCES = {
     "separate": "each row against a separate pass over the real test data (T2M, MDM)",
@@ -41,7 +42,8 @@ FID_REFERENCES = {
 LABELS = {"r_precision_top1": "R-P top1 ↑", "r_precision_top2": "R-P top2 ↑", "r_precision_top3": "R-P top3 ↑",
           "fid": "FID ↓", "mm_dist": "MM-Dist ↓", "diversity": "Diversity →", "multimodality": "MModality ↑",
           "accuracy": "Accuracy ↑", "mpjpe": "MPJPE (m) ↓", "foot_skating_ratio": "Skating ↓",
-          "penetration_m": "Penetration (m) ↓", "floating_m": "Floating (m) ↓", "jerk_m_s3": "Jerk (m/s³) →"}
+          "penetration_m": "Penetration (m) ↓", "floating_m": "Floating (m) ↓", "jerk_m_s3": "Jerk (m/s³) →",
+          "mpjpe_rel": "MPJPE root-rel. (m) ↓", "bone_std_mm": "Bone σ (mm) ↓"}
 
 
 @dataclass
@@ -243,8 +245,9 @@ def evaluate_reconstruction(
     device: str = "auto",
     batch_size: int = 128,
 ) -> Table:
-    """The VAE table: APE/AVE (root, trajectory, mean pose, mean joints), MPJPE and (with an evaluator) FID
-    of reconstructions (encoder mean, decoder) against the real motions.
+    """The VAE table: APE/AVE (root, trajectory, mean pose, mean joints), MPJPE (global and root-relative), the
+    motion-quality figures and (with an evaluator) FID of reconstructions (encoder mean, decoder) against the real
+    motions; a Real row holds the real motions' quality figures.
 
     APE/AVE are computed as MLD's ComputeMetrics does, in MLD's units (metres x 0.64), so the numbers sit
     beside the paper's VAE table; MPJPE is in metres on global joint positions."""
@@ -265,6 +268,7 @@ def evaluate_reconstruction(
     table = Table("vae-reconstruction", VAE_COLUMNS, info={"data": str(data), "split": split, "vae": str(vae),
                                                           "windows": len(dataset), "replications": replications,
                                                           "ape_ave_units": "MLD (metres x 0.64)"})
+    table.rows["Real"] = {}  # first
     for r in range(replications):
         real = _draw(dataset, seed + 1000 * r).motions
         recon: list[np.ndarray] = [None] * len(real)  # type: ignore[list-item]
@@ -288,6 +292,9 @@ def evaluate_reconstruction(
         for k, v in M.ape_ave(rec_joints, gt_joints, unit_scale=M.MLD_UNIT_SCALE).items():
             table.add("VAE", k, v)
         table.add("VAE", "mpjpe", M.mpjpe(rec_joints, gt_joints))
+        table.add("VAE", "mpjpe_rel", M.mpjpe(rec_joints, gt_joints, align_root=True))
+        _quality_cells(table, "Real", real)
+        _quality_cells(table, "VAE", recon)
         if ev is not None:
             table.add("VAE", "fid", M.fid(ev.embed_motions(real), ev.embed_motions(recon)))
     return table

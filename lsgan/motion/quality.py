@@ -1,4 +1,4 @@
-"""Motion-quality figures animators read: foot skating, ground penetration, floating, jitter.
+"""Motion-quality figures animators read: foot skating, ground penetration, floating, jitter, stretching bones.
 
 Pure numpy on joint positions (..., T, 22, 3): HumanML3D joint order (lsgan.data.skeleton), 20 fps, Y up, metres.
 Leading axes are a batch of equal-length motions; each function returns one value per motion (...,).
@@ -31,7 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from lsgan.data.skeleton import FPS
+from lsgan.data.skeleton import FPS, bone_lengths
 
 FEET = [10, 11]  # left_foot, right_foot (toe joints): GMD's foot joints
 CONTACT_HEIGHT = 0.05  # m: a foot under this height is on the ground (GMD)
@@ -101,6 +101,13 @@ def jerk(joints: np.ndarray, fps: float = FPS) -> np.ndarray:
     return np.linalg.norm(d3, axis=-1).mean(axis=(-2, -1))
 
 
+def bone_variation(joints: np.ndarray) -> np.ndarray:
+    """How far a motion's skeleton is from rigid: each bone's standard deviation of length over the frames, averaged
+    over the 21 bones, in millimetres (mocap's is 0). (...,)"""
+    lengths = bone_lengths(_check(joints, 1).astype(np.float64))[..., 1:]  # (..., T, 21)
+    return lengths.std(axis=-2).mean(axis=-1) * 1000.0
+
+
 def foot_pops(before: np.ndarray, after: np.ndarray, slack: float = POP_SLACK) -> np.ndarray:
     """Frame-to-frame moves of the ankles and toes (7, 10, 8, 11) in ``after`` longer than the fastest move of the
     same foot (its ankle or toe) in ``before`` plus ``slack`` metres: the snaps an edit (a foot clean-up) adds,
@@ -122,7 +129,7 @@ def toe_above(joints: np.ndarray, height: float = CONTACT_HEIGHT) -> np.ndarray:
 def quality_metrics(joints_list: Sequence[np.ndarray], fps: float = FPS) -> dict[str, float]:
     """Each figure per motion (T_i, 22, 3), then averaged over motions (each motion weighs the same).
 
-    Keys: foot_skating_ratio, penetration_m, floating_m, jerk_m_s3, num_motions.
+    Keys: foot_skating_ratio, penetration_m, floating_m, jerk_m_s3, bone_std_mm, num_motions.
     """
     if len(joints_list) == 0:
         raise ValueError("quality_metrics needs at least one motion")
@@ -130,9 +137,9 @@ def quality_metrics(joints_list: Sequence[np.ndarray], fps: float = FPS) -> dict
     for i, joints in enumerate(joints_list):
         try:
             rows.append((foot_skating_ratio(joints, fps), ground_penetration(joints), floating(joints, fps),
-                         jerk(joints, fps)))
+                         jerk(joints, fps), bone_variation(joints)))
         except ValueError as e:
             raise ValueError(f"motion {i}: {e}") from e
     mean = np.asarray(rows, dtype=np.float64).mean(axis=0)
     return {"foot_skating_ratio": float(mean[0]), "penetration_m": float(mean[1]), "floating_m": float(mean[2]),
-            "jerk_m_s3": float(mean[3]), "num_motions": len(rows)}
+            "jerk_m_s3": float(mean[3]), "bone_std_mm": float(mean[4]), "num_motions": len(rows)}

@@ -1,8 +1,10 @@
 """Train the motion VAE: AdamW on a reconstruction loss + KL, validation MPJPE in metres (the loop: lsgan.train.loop).
 
-The reconstruction loss is ``VAETrainConfig.loss``: "mse", MSE on the normalised features; or "mld", MLD's
-configuration (SmoothL1 on the features + SmoothL1 on the joints recovered from them, weight 1 each), which the
-paper trains with.
+The objective (:mod:`lsgan.train.vae_loss`) is ``VAETrainConfig.loss`` for the features: "mse", MSE on the
+normalised features; or "mld", MLD's configuration (SmoothL1 on the features + SmoothL1 on the joints recovered
+from them, weight 1 each), which the paper trains with; plus the kinematic terms the config weights (velocity,
+acceleration, bone lengths, foot contact) and KL. The learning rate is constant or follows a cosine to 0 after
+a linear warm-up (``lr_schedule``), computed from the optimiser's own step count so a resume continues it.
 
 One process: ``train_vae(shards, "runs/vae", model=VAEConfig(...), train=VAETrainConfig(...))``.
 Several: the same call under ``torchrun --nproc_per_node=N``; every process draws its own batches of
@@ -23,18 +25,20 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
-from lsgan.models.vae import MotionVAE, VAEConfig, load_vae, vae_loss
+from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.common import all_reduce_mean, seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Trainer, WindowTrainConfig, fit, launch
+from lsgan.train.vae_loss import LossWeights, bone_lengths, vae_objective
 
-__all__ = ["VAETrainConfig", "train_vae", "load_vae", "mld_vae_loss", "reconstruction_mpjpe"]
+__all__ = ["VAETrainConfig", "train_vae", "load_vae", "mld_vae_loss", "reconstruction_errors"]
 
 LOSSES = ("mse", "mld")
+SCHEDULES = ("constant", "cosine")
+VALIDATION_SUMS = ("mpjpe_m", "mpjpe_rel_m", "bone_std_mm", "frames", "motions")
 
 
 @dataclass
@@ -46,6 +50,12 @@ class VAETrainConfig(WindowTrainConfig):
     batch_size: int = 128  # per process
     kl_weight: float = 1e-4
     loss: str = "mse"  # "mse": MSE on the features; "mld": MLD's SmoothL1 on the features and the recovered joints
+    velocity_weight: float = 0.0  # joints' velocity error, m/s (lsgan.train.vae_loss)
+    accel_weight: float = 0.0  # joints' acceleration error, m/s^2
+    bone_weight: float = 0.0  # bone-length error, m
+    contact_weight: float = 0.0  # speed of the feet the data says are on the ground, m/s
+    lr_schedule: str = "constant"  # "constant" or "cosine" (to 0 at max_steps)
+    warmup_steps: int = 0  # linear warm-up from 0 (either schedule)
     unit_length: int = 4  # window lengths rounded down to a multiple (one unit less w.p. 1/3), as HumanML3D loaders
     grad_clip: float = 1.0  # max global grad norm; 0 = no clipping
     amp: bool = True  # bf16 autocast, CUDA only
@@ -54,6 +64,26 @@ class VAETrainConfig(WindowTrainConfig):
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, not {self.loss!r}")
+        if self.lr_schedule not in SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {', '.join(SCHEDULES)}, not {self.lr_schedule!r}")
+        for name in ("velocity_weight", "accel_weight", "bone_weight", "contact_weight", "warmup_steps"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, not {getattr(self, name)!r}")
+
+    def weights(self) -> LossWeights:
+        mld = self.loss == "mld"
+        return LossWeights(features="smoothl1" if mld else "mse", joints=1.0 if mld else 0.0,
+                           velocity=self.velocity_weight, accel=self.accel_weight, bones=self.bone_weight,
+                           contact=self.contact_weight, kl=self.kl_weight)
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of update ``step`` (0-based)."""
+        if step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        if self.lr_schedule == "constant":
+            return self.lr
+        done = (step - self.warmup_steps) / max(1, self.max_steps - self.warmup_steps)
+        return self.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, done)))
 
 
 def mld_vae_loss(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor, mask: torch.Tensor,
@@ -62,29 +92,39 @@ def mld_vae_loss(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar:
     de-normalised features (``* std + mean``), weight 1 each, + kl_weight * KL(q(z|x) || N(0,I)).
 
     Each SmoothL1 (torch's, beta 1, as MLD's) is a mean over the real frames' elements (MLD's mean also counts the
-    padded frames); KL as in :func:`lsgan.models.vae.vae_loss`.
+    padded frames).
     """
-    m = mask[..., None].to(x.dtype)  # (B,T,1)
-    frames = m.sum().clamp_min(1.0)
-    recon = (F.smooth_l1_loss(x_hat, x, reduction="none") * m).sum() / (frames * x.shape[-1])
-    joints_hat = recover_from_ric(x_hat * std + mean).flatten(-2)  # (B,T,66)
-    joints = recover_from_ric(x * std + mean).flatten(-2)
-    recon_joints = (F.smooth_l1_loss(joints_hat, joints, reduction="none") * m).sum() / (frames * joints.shape[-1])
-    kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).mean()
-    return {"total": recon + recon_joints + kl_weight * kl, "recon": recon, "recon_joints": recon_joints, "kl": kl}
+    w = LossWeights(features="smoothl1", joints=1.0, kl=kl_weight)
+    return vae_objective(x_hat, x, mu, logvar, mask, w, mean, std)
 
 
-def reconstruction_mpjpe(x_hat: torch.Tensor, x: torch.Tensor, mask: torch.Tensor, mean: torch.Tensor,
-                         std: torch.Tensor) -> tuple[float, int]:
-    """(sum over real frames of the per-frame mean joint error in metres, number of real frames).
-
-    Both normalised feature tensors (B,T,263) are de-normalised and turned into joints by
-    ``recover_from_ric`` (root trajectory integrated, so drift counts as error).
-    """
+def reconstruction_errors(x_hat: torch.Tensor, x: torch.Tensor, mask: torch.Tensor, mean: torch.Tensor,
+                          std: torch.Tensor) -> dict[str, float]:
+    """Sums over a batch of normalised features (B,T,263) with real frames ``mask`` (B,T), to be divided by
+    "frames" or "motions": "mpjpe_m", the per-frame mean joint error in metres (the root trajectory integrated, so
+    drift counts); "mpjpe_rel_m", the same with each frame's root moved onto the real one; "bone_std_mm", each
+    motion's per-bone standard deviation over its frames in mm, averaged over bones (a rigid skeleton has 0)."""
     joints_hat = recover_from_ric(x_hat.float() * std + mean)  # (B,T,22,3)
     joints = recover_from_ric(x.float() * std + mean)
     per_frame = (joints_hat - joints).norm(dim=-1).mean(-1)  # (B,T)
-    return float(per_frame[mask].sum()), int(mask.sum())
+    rel = joints_hat - joints_hat[..., :1, :] - (joints - joints[..., :1, :])
+    m = mask[..., None].to(joints.dtype)  # (B,T,1)
+    n = m.sum(1).clamp_min(1.0)  # (B,1)
+    bones = bone_lengths(joints_hat) * m  # (B,T,21)
+    var = ((bones - bones.sum(1, keepdim=True) / n[:, None]) ** 2 * m).sum(1) / n  # (B,21)
+    return {"mpjpe_m": float(per_frame[mask].sum()), "mpjpe_rel_m": float(rel.norm(dim=-1).mean(-1)[mask].sum()),
+            "bone_std_mm": float(var.sqrt().mean(-1).sum() * 1000), "frames": int(mask.sum()),
+            "motions": int(mask.any(1).sum())}
+
+
+def _updates(opt: torch.optim.Optimizer) -> int:
+    """How many updates ``opt`` has made (its per-parameter step count, saved and restored with its state)."""
+    for group in opt.param_groups:
+        for p in group["params"]:
+            state = opt.state.get(p)
+            if state and "step" in state:
+                return int(state["step"])
+    return 0
 
 
 def _split_validation(paths: list[str], train_ds: MotionDataset, say) -> set[tuple[int, int]]:
@@ -162,18 +202,18 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: F
     vae = MotionVAE(mcfg).to(dev)
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     net, amp = env.ddp(vae), env.autocast(cfg.amp)
+    weights = cfg.weights()
 
     def step(batch: dict) -> dict[str, torch.Tensor]:
         x, mask = batch["motion"], batch["mask"]  # (B,T,263), (B,T): gathered on the device
         with amp:
             x_hat, mu, logvar = net(x, mask)
-        if cfg.loss == "mld":
-            losses = mld_vae_loss(x_hat.float(), x, mu.float(), logvar.float(), mask, cfg.kl_weight, mean, std)
-        else:
-            losses = vae_loss(x_hat.float(), x, mu.float(), logvar.float(), mask, cfg.kl_weight)
+        losses = vae_objective(x_hat.float(), x, mu.float(), logvar.float(), mask, weights, mean, std)
         opt.zero_grad(set_to_none=True)
         losses["total"].backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(vae.parameters(), cfg.grad_clip if cfg.grad_clip > 0 else math.inf)
+        for group in opt.param_groups:
+            group["lr"] = cfg.lr_at(_updates(opt))
         opt.step()
         return {"loss": losses.pop("total"), **losses, "grad_norm": grad_norm}
 
@@ -189,14 +229,15 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: F
 
 def _validation(env: Env, vae: MotionVAE, val_ds: MotionDataset, frames: FrameTable, cfg: VAETrainConfig,
                 mean: torch.Tensor, std: torch.Tensor) -> Callable[[], dict[str, float]]:
-    """Mean per-frame MPJPE (m) of mu-decoded validation windows, over all processes (a fixed subset of batches)."""
+    """MPJPE (m; global and root-relative) and bone-length variation (mm) of mu-decoded validation windows, over
+    all processes (a fixed subset of batches)."""
     dev, d, amp = env.device, env.dist, env.autocast(cfg.amp)
     order = list(LengthBucketSampler(val_ds.lengths(), cfg.batch_size, shuffle=False))
     mine = (order[: cfg.val_batches] if cfg.val_batches > 0 else order)[d.rank :: d.world_size]
 
     def validate() -> dict[str, float]:
         vae.eval()
-        total, count = 0.0, 0
+        sums: dict[str, float] = {}
         with torch.no_grad(), torch.random.fork_rng(devices=[dev] if dev.type == "cuda" else []):
             torch.manual_seed(cfg.seed)
             for indices in mine:
@@ -204,9 +245,10 @@ def _validation(env: Env, vae: MotionVAE, val_ds: MotionDataset, frames: FrameTa
                 x, mask = batch["motion"], batch["mask"]
                 with amp:
                     x_hat = vae.decode(vae.encode(x, mask)[0], mask)
-                s, n = reconstruction_mpjpe(x_hat, x, mask, mean, std)
-                total, count = total + s, count + n
-        total, count = all_reduce_mean(total, d, dev), all_reduce_mean(float(count), d, dev)
-        return {"mpjpe_m": total / count if count else math.nan}
+                for k, v in reconstruction_errors(x_hat, x, mask, mean, std).items():
+                    sums[k] = sums.get(k, 0.0) + v
+        sums = {k: all_reduce_mean(sums.get(k, 0.0), d, dev) for k in VALIDATION_SUMS}
+        per = {"mpjpe_m": "frames", "mpjpe_rel_m": "frames", "bone_std_mm": "motions"}
+        return {k: sums[k] / sums[n] if sums[n] else math.nan for k, n in per.items()}
 
     return validate

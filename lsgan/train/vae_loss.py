@@ -1,0 +1,103 @@
+"""The VAE's training objective: a term on the features, terms on the joints recovered from them, and KL.
+
+What users see is joints, so a VAE trained only on its 263 features can score well there and still show motions
+whose bones stretch, whose feet slide and which jitter: ``recover_from_ric`` reads the root-relative positions and
+integrates the root's velocities, and nothing in a feature loss asks the positions to agree with the velocities,
+with one another from frame to frame, or with one skeleton. The kinematic terms below ask it of the joints
+directly, in SI units, each averaged over the real frames only:
+
+- ``joints`` (MLD): SmoothL1 (beta 1) between the recovered global joints, metres; the root trajectory included.
+- ``velocity``: mean norm of the joints' velocity error, m/s (T2M-GPT's and MoMask's VQ-VAEs call their second
+  term a velocity loss but apply it to the root-relative positions; this one differences the recovered joints).
+- ``accel``: the same for accelerations, m/s^2: jitter is an acceleration error that positions barely see.
+- ``bones``: mean absolute error of the 21 bone lengths, metres. The data's skeleton is one rigid skeleton
+  (``preprocess`` retargets every clip onto it), so this asks each frame for that skeleton.
+- ``contact``: MDM's foot-contact loss: the speed (m/s) of the ankles and toes on the frames where the data's
+  contact labels (features 259:263) say that foot is on the ground.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from lsgan.data.features import recover_from_ric
+from lsgan.data.skeleton import FPS, PARENTS
+
+FEATURE_LOSSES = ("mse", "smoothl1")
+CONTACT_JOINTS = (7, 10, 8, 11)  # left ankle, left toe, right ankle, right toe: the order of features 259:263
+_PARENTS = list(PARENTS[1:])
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """The objective's terms and their weights (0 leaves a term out)."""
+
+    features: str = "mse"  # "mse" or "smoothl1" (MLD's), on the normalised features
+    joints: float = 0.0
+    velocity: float = 0.0
+    accel: float = 0.0
+    bones: float = 0.0
+    contact: float = 0.0
+    kl: float = 1e-4
+
+    @property
+    def kinematic(self) -> bool:
+        return any((self.joints, self.velocity, self.accel, self.bones, self.contact))
+
+
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``values`` (B,T,...) over the frames where ``mask`` (B,T) holds (every trailing element counts)."""
+    m = mask.to(values.dtype).reshape(mask.shape + (1,) * (values.dim() - 2))
+    per = values[0, 0].numel()
+    return (values * m).sum() / (m.sum() * per).clamp_min(1.0)
+
+
+def _feature_term(x_hat: torch.Tensor, x: torch.Tensor, mask: torch.Tensor, kind: str) -> torch.Tensor:
+    err = (x_hat - x) ** 2 if kind == "mse" else F.smooth_l1_loss(x_hat, x, reduction="none")
+    return _masked_mean(err, mask)
+
+
+def bone_lengths(joints: torch.Tensor) -> torch.Tensor:
+    """(...,22,3) -> (...,21): the length of every bone below the root."""
+    return (joints[..., 1:, :] - joints[..., _PARENTS, :]).norm(dim=-1)
+
+
+def kinematic_terms(j_hat: torch.Tensor, j: torch.Tensor, mask: torch.Tensor, contacts: torch.Tensor,
+                    fps: float = FPS) -> dict[str, torch.Tensor]:
+    """The kinematic terms of recovered joints ``j_hat`` against ``j`` (B,T,22,3), with the real frames ``mask``
+    (B,T) and the data's foot contacts (B,T,4) in [0, 1]."""
+    pairs, triples = mask[:, 1:] & mask[:, :-1], mask[:, 2:] & mask[:, 1:-1] & mask[:, :-2]
+    v_hat, v = j_hat.diff(dim=1) * fps, j.diff(dim=1) * fps  # (B,T-1,22,3) m/s
+    a_hat, a = v_hat.diff(dim=1) * fps, v.diff(dim=1) * fps  # (B,T-2,22,3) m/s^2
+    on = (contacts[:, 1:] > 0.5) & pairs[..., None]  # (B,T-1,4): the foot is down at both ends of the pair
+    feet = v_hat[:, :, list(CONTACT_JOINTS)].norm(dim=-1)  # (B,T-1,4)
+    return {
+        "joints": _masked_mean(F.smooth_l1_loss(j_hat, j, reduction="none"), mask),
+        "velocity": _masked_mean((v_hat - v).norm(dim=-1), pairs),
+        "accel": _masked_mean((a_hat - a).norm(dim=-1), triples),
+        "bones": _masked_mean((bone_lengths(j_hat) - bone_lengths(j)).abs(), mask),
+        "contact": (feet * on).sum() / on.sum().clamp_min(1),
+    }
+
+
+def vae_objective(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor, mask: torch.Tensor,
+                  w: LossWeights, mean: torch.Tensor, std: torch.Tensor) -> dict[str, torch.Tensor]:
+    """{"total", "recon", each weighted kinematic term, "kl"} for normalised features ``x_hat``, ``x`` (B,T,263),
+    the posterior ``mu``, ``logvar`` and the real frames ``mask`` (B,T); ``mean``, ``std`` de-normalise.
+
+    KL is averaged over the batch and latent dimensions (MLD's KLLoss), so MLD's weight 1e-4 means the same here.
+    """
+    out = {"recon": _feature_term(x_hat, x, mask, w.features)}
+    total = out["recon"]
+    if w.kinematic:
+        raw_hat, raw = x_hat * std + mean, x * std + mean
+        terms = kinematic_terms(recover_from_ric(raw_hat), recover_from_ric(raw), mask, raw[..., -4:])
+        for name, value in terms.items():
+            weight = getattr(w, name)
+            if weight:
+                out[f"recon_{name}"] = value
+                total = total + weight * value
+    out["kl"] = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).mean()
+    return {"total": total + w.kl * out["kl"], **out}
