@@ -45,6 +45,9 @@ ROWS = {  # name: (what changes, the VAE train values over the recipe's)
                 "contact_weight": 1.0}),
     "constant-lr": ("all terms, constant lr (no warm-up, no cosine)",
                     {**ALL, "lr_schedule": "constant", "warmup_steps": 0}),
+    "vel2": ("MLD + squared velocity 1", {**MLD, "kinematic_loss": "squared", "velocity_weight": 1.0}),
+    "sq": ("MLD + squared velocity 1 + acceleration 0.002 + bones 1000",
+           {**MLD, "kinematic_loss": "squared", "velocity_weight": 1.0, "accel_weight": 0.002, "bone_weight": 1000.0}),
     "recipe": ("the recipe as shipped: MLD + velocity 0.25 + bones 1 + accel 0.002", {}),
 }
 GAN_COLUMNS = ("fid", "r_precision_top3", "mm_dist", "diversity", "foot_skating_ratio", "jerk_m_s3",
@@ -119,6 +122,12 @@ def run_row(args, name: str) -> dict:
         args.data, work / "vae", model=vcfg, train=tcfg, device=args.device, resume=(work / "vae").exists(),
         progress=False))
     save()
+    if args.vae_only:
+        row["vae"] = _stage(times, "eval_vae", lambda: evaluate_reconstruction(
+            work / "vae", args.data, evaluator=args.evaluator, replications=args.replications, device=args.device,
+            **frames)).to_json()["rows"]
+        save()
+        return row
     cache = work / "cache.h5"
     if not cache.exists():
         _stage(times, "encode", lambda: encode_latents(args.data, work / "vae", cache, **enc, **frames,
@@ -182,6 +191,8 @@ def main() -> None:
     ap.add_argument("--text-encoder-path", default=None)
     ap.add_argument("--evaluator", default=None, help="the evaluator to measure with, once EVALUATOR.json exists "
                     "(default: WORK/evaluator, trained here)")
+    ap.add_argument("--vae-only", action="store_true", help="train and measure the VAE alone (no GAN; FID only "
+                    "with --evaluator)")
     ap.add_argument("--wait-evaluator", action="store_true", help=argparse.SUPPRESS)  # a row process of --jobs
     ap.add_argument("--table", action="store_true", help="print the table of the rows done and exit")
     args = ap.parse_args()
@@ -199,13 +210,13 @@ def main() -> None:
         return
     argv = [sys.executable, __file__, "--data", args.data, "--recipe", args.recipe, "--work", args.work,
             "--replications", str(args.replications), "--mm-captions", str(args.mm_captions), "--device", args.device,
-            "--scale", str(args.scale), "--wait-evaluator"] + (["--evaluator", args.evaluator] if args.evaluator else [])
+            "--scale", str(args.scale), "--wait-evaluator"] + (["--vae-only"] if args.vae_only else []) + (["--evaluator", args.evaluator] if args.evaluator else [])
     if args.text_encoder_path:
         argv += ["--text-encoder-path", args.text_encoder_path]
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "LSGAN_THREADS": str(args.threads)}
     Path(args.work).mkdir(parents=True, exist_ok=True)
     trainer = None
-    if not args.evaluator:  # trained beside the rows, which wait for it only when they measure
+    if not args.evaluator and not args.vae_only:  # trained beside the rows, which wait for it only when they measure
         from lsgan.recipes import load_recipe
 
         trainer = threading.Thread(target=_evaluator, args=(args, load_recipe(args.recipe)))

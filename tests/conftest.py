@@ -14,7 +14,7 @@ QUICK = ("test_bvh.py", "test_cli.py", "test_dataset.py", "test_export_bvh.py", 
          "test_infra.py", "test_jsonfmt.py", "test_layers.py", "test_metrics.py", "test_onnx_rewrite.py",
          "test_outputs.py", "test_pickles.py", "test_quality.py", "test_rigid.py", "test_serve_worker.py",
          "test_synthetic.py", "test_text.py", "test_textcache.py", "test_threads.py", "test_timeline.py",
-         "test_vae.py", "test_demo.py::test_settings_follow_the_recipe_and_shrink_with_floors")
+         "test_vae.py", "test_vae_loss.py", "test_demo.py::test_settings_follow_the_recipe_and_shrink_with_floors")
 
 
 def pytest_collection_modifyitems(config, items) -> None:

@@ -100,7 +100,7 @@ def test_the_objective_adds_the_weighted_terms_and_mld_is_one_setting():
     assert set(mld) == {"total", "recon", "recon_joints", "kl"}
     assert float(mld["total"]) == pytest.approx(float(out["recon"] + out["recon_joints"]), rel=1e-6)
     assert VAETrainConfig(loss="mld").weights() == LossWeights("smoothl1", joints=1.0)
-    assert not VAETrainConfig().weights().kinematic
+    assert not VAETrainConfig().weights().uses_joints
 
 
 def test_the_learning_rate_schedules():
@@ -161,3 +161,17 @@ def test_validation_figures_match_the_quality_functions():
     assert got["motions"] == 2 and got["frames"] == x.shape[1] + 15
     assert got["bone_std_mm"] / 2 == pytest.approx(quality_metrics(joints)["bone_std_mm"], rel=1e-4)
     assert reconstruction_errors(x, x, mask, zero, one)["mpjpe_rel_m"] == 0.0
+
+
+def test_a_resume_that_changes_the_objective_says_so(shard, tmp_path, capsys):
+    cfg = VAETrainConfig(lr=1e-3, batch_size=4, max_steps=4, val_every=4, ckpt_every=4, log_every=2, seed=3,
+                         loss="mld", bone_weight=1.0, lr_schedule="cosine")
+    train_vae(shard, tmp_path, model=TINY, train=cfg, device="cpu", progress=False)
+    capsys.readouterr()
+    train_vae(shard, tmp_path, model=TINY, train=replace(cfg, max_steps=6), device="cpu", resume=True, progress=False)
+    said = capsys.readouterr().err
+    assert "max_steps 4 -> 6 (the cosine now ends there)" in said and "bone_weight" not in said
+    train_vae(shard, tmp_path, model=TINY, train=replace(cfg, max_steps=8, lr_schedule="constant", bone_weight=2.0),
+              device="cpu", resume=True, progress=False)
+    said = capsys.readouterr().err
+    assert "bone_weight 1.0 -> 2.0" in said and "lr_schedule 'cosine' -> 'constant'" in said

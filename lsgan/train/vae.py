@@ -32,7 +32,7 @@ from lsgan.data.shards import Shard
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.common import all_reduce_mean, seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Trainer, WindowTrainConfig, fit, launch
-from lsgan.train.vae_loss import LossWeights, bone_lengths, vae_objective
+from lsgan.train.vae_loss import KINEMATIC, LossWeights, bone_lengths, vae_objective
 
 __all__ = ["VAETrainConfig", "train_vae", "load_vae", "mld_vae_loss", "reconstruction_errors"]
 
@@ -54,6 +54,7 @@ class VAETrainConfig(WindowTrainConfig):
     accel_weight: float = 0.0  # joints' acceleration error, m/s^2
     bone_weight: float = 0.0  # bone-length error, m
     contact_weight: float = 0.0  # speed of the feet the data says are on the ground, m/s
+    kinematic_loss: str = "norm"  # "norm" (L1-type) or "squared": how velocity, acceleration, bone errors average
     lr_schedule: str = "constant"  # "constant" or "cosine" (to 0 at max_steps)
     warmup_steps: int = 0  # linear warm-up from 0 (either schedule)
     unit_length: int = 4  # window lengths rounded down to a multiple (one unit less w.p. 1/3), as HumanML3D loaders
@@ -64,6 +65,8 @@ class VAETrainConfig(WindowTrainConfig):
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, not {self.loss!r}")
+        if self.kinematic_loss not in KINEMATIC:
+            raise ValueError(f"kinematic_loss must be one of {', '.join(KINEMATIC)}, not {self.kinematic_loss!r}")
         if self.lr_schedule not in SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(SCHEDULES)}, not {self.lr_schedule!r}")
         for name in ("velocity_weight", "accel_weight", "bone_weight", "contact_weight", "warmup_steps"):
@@ -74,7 +77,7 @@ class VAETrainConfig(WindowTrainConfig):
         mld = self.loss == "mld"
         return LossWeights(features="smoothl1" if mld else "mse", joints=1.0 if mld else 0.0,
                            velocity=self.velocity_weight, accel=self.accel_weight, bones=self.bone_weight,
-                           contact=self.contact_weight, kl=self.kl_weight)
+                           contact=self.contact_weight, kl=self.kl_weight, kinematic=self.kinematic_loss)
 
     def lr_at(self, step: int) -> float:
         """The learning rate of update ``step`` (0-based)."""
@@ -169,6 +172,8 @@ def train_vae(data: str | os.PathLike | Sequence[str | os.PathLike], out: str | 
 
 def _train(env: Env, paths: list[str], mcfg: VAEConfig, cfg: VAETrainConfig) -> dict:
     prev = env.previous("vae")
+    if prev is not None:
+        _say_changed_objective(env, prev.meta.get("config", {}).get("train", {}), cfg)
     seed_everything(cfg.seed + env.dist.rank)
     kw = dict(min_frames=cfg.min_frames, max_frames=cfg.max_frames, unit_length=cfg.unit_length)
     train_ds = MotionDataset(paths, "train", **kw)
@@ -186,6 +191,20 @@ def _train(env: Env, paths: list[str], mcfg: VAEConfig, cfg: VAETrainConfig) -> 
             f"{env.dist.world_size} process(es)")
     return {"step": p.step, "train_loss": p.train_loss, "val_mpjpe_m": p.val.get("mpjpe_m"),
             "best_val_mpjpe_m": p.best_value}
+
+
+def _say_changed_objective(env: Env, before: dict, cfg: VAETrainConfig) -> None:
+    """Tell a resume what it changes of the objective or the schedule (the run continues with the new values)."""
+    keys = ("loss", "kl_weight", "velocity_weight", "accel_weight", "bone_weight", "contact_weight", "kinematic_loss",
+            "lr",
+            "lr_schedule", "warmup_steps")
+    defaults = VAETrainConfig()
+    changed = [f"{k} {before.get(k, getattr(defaults, k))!r} -> {getattr(cfg, k)!r}" for k in keys
+               if before.get(k, getattr(defaults, k)) != getattr(cfg, k)]
+    if cfg.lr_schedule == "cosine" and before.get("max_steps", cfg.max_steps) != cfg.max_steps:
+        changed.append(f"max_steps {before['max_steps']} -> {cfg.max_steps} (the cosine now ends there)")
+    if changed:
+        env.say("resuming with another objective or schedule: " + "; ".join(changed))
 
 
 def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: FrameTable, mcfg: VAEConfig,

@@ -7,9 +7,14 @@ with one another from frame to frame, or with one skeleton. The kinematic terms 
 directly, in SI units, each averaged over the real frames only:
 
 - ``joints`` (MLD): SmoothL1 (beta 1) between the recovered global joints, metres; the root trajectory included.
-- ``velocity``: mean norm of the joints' velocity error, m/s (T2M-GPT's and MoMask's VQ-VAEs call their second
-  term a velocity loss but apply it to the root-relative positions; this one differences the recovered joints).
+- ``velocity``: the joints' velocity error, m/s (T2M-GPT's and MoMask's VQ-VAEs call their second term a velocity
+  loss but apply it to the root-relative positions; this one differences the recovered joints).
 - ``accel``: the same for accelerations, m/s^2: jitter is an acceleration error that positions barely see.
+
+``kinematic`` says how the velocity, acceleration and bone errors are averaged: "norm", the mean of each error
+vector's norm (an L1-type penalty: its gradient does not shrink with the error, and where the decoder is unsure it
+pulls towards no change at all, which measured as a collapse onto one fixed pose); or "squared", the mean squared
+norm (an L2 penalty, whose minimiser is the conditional mean, as for the features).
 - ``bones``: mean absolute error of the 21 bone lengths, metres. The data's skeleton is one rigid skeleton
   (``preprocess`` retargets every clip onto it), so this asks each frame for that skeleton.
 - ``contact``: MDM's foot-contact loss: the speed (m/s) of the ankles and toes on the frames where the data's
@@ -26,6 +31,7 @@ from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS, PARENTS
 
 FEATURE_LOSSES = ("mse", "smoothl1")
+KINEMATIC = ("norm", "squared")
 CONTACT_JOINTS = (7, 10, 8, 11)  # left ankle, left toe, right ankle, right toe: the order of features 259:263
 _PARENTS = list(PARENTS[1:])
 
@@ -41,9 +47,10 @@ class LossWeights:
     bones: float = 0.0
     contact: float = 0.0
     kl: float = 1e-4
+    kinematic: str = "norm"  # "norm" or "squared": how velocity, acceleration and bone errors are averaged
 
     @property
-    def kinematic(self) -> bool:
+    def uses_joints(self) -> bool:
         return any((self.joints, self.velocity, self.accel, self.bones, self.contact))
 
 
@@ -65,9 +72,10 @@ def bone_lengths(joints: torch.Tensor) -> torch.Tensor:
 
 
 def kinematic_terms(j_hat: torch.Tensor, j: torch.Tensor, mask: torch.Tensor, contacts: torch.Tensor,
-                    fps: float = FPS) -> dict[str, torch.Tensor]:
+                    fps: float = FPS, kinematic: str = "norm") -> dict[str, torch.Tensor]:
     """The kinematic terms of recovered joints ``j_hat`` against ``j`` (B,T,22,3), with the real frames ``mask``
-    (B,T) and the data's foot contacts (B,T,4) in [0, 1]."""
+    (B,T) and the data's foot contacts (B,T,4) in [0, 1]; ``kinematic`` as :class:`LossWeights`."""
+    err = (lambda d: d.norm(dim=-1)) if kinematic == "norm" else (lambda d: (d**2).sum(-1))
     pairs, triples = mask[:, 1:] & mask[:, :-1], mask[:, 2:] & mask[:, 1:-1] & mask[:, :-2]
     v_hat, v = j_hat.diff(dim=1) * fps, j.diff(dim=1) * fps  # (B,T-1,22,3) m/s
     a_hat, a = v_hat.diff(dim=1) * fps, v.diff(dim=1) * fps  # (B,T-2,22,3) m/s^2
@@ -75,9 +83,9 @@ def kinematic_terms(j_hat: torch.Tensor, j: torch.Tensor, mask: torch.Tensor, co
     feet = v_hat[:, :, list(CONTACT_JOINTS)].norm(dim=-1)  # (B,T-1,4)
     return {
         "joints": _masked_mean(F.smooth_l1_loss(j_hat, j, reduction="none"), mask),
-        "velocity": _masked_mean((v_hat - v).norm(dim=-1), pairs),
-        "accel": _masked_mean((a_hat - a).norm(dim=-1), triples),
-        "bones": _masked_mean((bone_lengths(j_hat) - bone_lengths(j)).abs(), mask),
+        "velocity": _masked_mean(err(v_hat - v), pairs),
+        "accel": _masked_mean(err(a_hat - a), triples),
+        "bones": _masked_mean(err((bone_lengths(j_hat) - bone_lengths(j))[..., None]), mask),
         "contact": (feet * on).sum() / on.sum().clamp_min(1),
     }
 
@@ -91,9 +99,10 @@ def vae_objective(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar
     """
     out = {"recon": _feature_term(x_hat, x, mask, w.features)}
     total = out["recon"]
-    if w.kinematic:
+    if w.uses_joints:
         raw_hat, raw = x_hat * std + mean, x * std + mean
-        terms = kinematic_terms(recover_from_ric(raw_hat), recover_from_ric(raw), mask, raw[..., -4:])
+        terms = kinematic_terms(recover_from_ric(raw_hat), recover_from_ric(raw), mask, raw[..., -4:],
+                                kinematic=w.kinematic)
         for name, value in terms.items():
             weight = getattr(w, name)
             if weight:
