@@ -55,12 +55,42 @@ GAN_COLUMNS = ("fid", "r_precision_top3", "mm_dist", "diversity", "foot_skating_
 VAE_COLUMNS = ("mpjpe", "mpjpe_rel", "bone_std_mm", "jerk_m_s3", "foot_skating_ratio", "fid")
 
 
+MARK = ".fidelity"  # in WORK: this script made the folder, so what is inside is its own
+
+
+def _claim(work: Path) -> None:
+    """Refuse a ``--work`` folder this script did not make (it writes and replaces files there)."""
+    if work.exists() and not (work / MARK).exists() and any(work.iterdir()):
+        raise SystemExit(f"error: {work}: a folder benchmarks/fidelity.py did not make; give a new or empty one")
+    work.mkdir(parents=True, exist_ok=True)
+    (work / MARK).touch()
+
+
+def _write(path: Path, text: str) -> None:
+    from lsgan.io import atomic_file
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
+
+
+def _cache_matches(cache: Path, vae: Path) -> bool:
+    from lsgan.models.cache import StaleCache, check_cache_vae
+
+    try:
+        return cache.exists() and check_cache_vae(cache, vae=vae) is not None
+    except StaleCache:
+        return False
+
+
 def _scaled(cfg, scale: float, *every: str):
-    """``cfg`` with max_steps (and the named periods) times ``scale``, at least 1 step."""
+    """``cfg`` with max_steps (the warm-up, the named periods) times ``scale``, at least 1 step."""
     if scale == 1.0:
         return cfg
     steps = max(1, round(cfg.max_steps * scale))
-    return replace(cfg, max_steps=steps, **{k: max(1, min(steps, round(getattr(cfg, k) * scale))) for k in every})
+    warmup = {"warmup_steps": min(steps, round(cfg.warmup_steps * scale))} if hasattr(cfg, "warmup_steps") else {}
+    return replace(cfg, max_steps=steps, **warmup, **{k: max(1, min(steps, round(getattr(cfg, k) * scale)))
+                                                      for k in every})
 
 
 def _stage(times: dict, name: str, fn):
@@ -77,25 +107,31 @@ def _evaluator(args, recipe: dict) -> Path:
     from lsgan.train.evaluator import train_from_recipe
 
     out = Path(args.evaluator or Path(args.work) / "evaluator")
-    done = out.with_suffix(".json")
-    if args.evaluator or args.wait_evaluator:
-        while not done.exists():
-            time.sleep(5)
+    done, failed = out.with_suffix(".json"), out.with_suffix(".failed")
+    if args.evaluator:
         return out
+    while args.wait_evaluator and not done.exists():  # a row process of --jobs: the driver trains it
+        if failed.exists():
+            raise SystemExit(f"error: {out}: the evaluator's training failed: {failed.read_text().strip()}")
+        time.sleep(5)
     if not done.exists():
         steps = section(section(section(recipe, "evaluator"), "text"), "train")["max_steps"]
         scaled = {k: max(1, round(steps * args.scale)) for k in ("max_steps", "val_every", "ckpt_every")}
-        res = train_from_recipe([args.data], out, recipe, kind="text", text_encoder_path=args.text_encoder_path,
-                                overrides=scaled if args.scale != 1.0 else None, device=args.device,
-                                resume=out.exists(), progress=False)
-        done.write_text(json.dumps(res, indent=1, default=str))
+        try:
+            res = train_from_recipe([args.data], out, recipe, kind="text", text_encoder_path=args.text_encoder_path,
+                                    overrides=scaled if args.scale != 1.0 else None, device=args.device,
+                                    resume=out.exists(), progress=False)
+        except Exception as e:
+            _write(failed, f"{type(e).__name__}: {e}")
+            raise
+        _write(done, json.dumps(res, indent=1, default=str))
     return out
 
 
 def run_row(args, name: str) -> dict:
     """Train and measure one row; its JSON is written when it is done."""
     from lsgan.eval.evaluate import evaluate_reconstruction, evaluate_text_to_motion
-    from lsgan.models.cache import encode_latents
+    from lsgan.models.cache import check_cache_vae, encode_latents
     from lsgan.models.gan import GANConfig
     from lsgan.models.vae import VAEConfig
     from lsgan.recipes import configs, load_recipe
@@ -117,7 +153,7 @@ def run_row(args, name: str) -> dict:
                                                                     "lr_schedule": tcfg.lr_schedule},
            "seconds": times, "device": args.device, "machine": platform.node(), "cpus": os.cpu_count(),
            "replications": args.replications}
-    save = lambda: out.write_text(json.dumps(row, indent=1))  # noqa: E731  (after every stage: a cut run keeps some)
+    save = lambda: _write(out, json.dumps(row, indent=1))  # noqa: E731  (after every stage: a cut run keeps some)
     row["vae_result"] = _stage(times, "train_vae", lambda: train_vae(
         args.data, work / "vae", model=vcfg, train=tcfg, device=args.device, resume=(work / "vae").exists(),
         progress=False))
@@ -129,11 +165,12 @@ def run_row(args, name: str) -> dict:
         save()
         return row
     cache = work / "cache.h5"
-    if not cache.exists():
+    if not _cache_matches(cache, work / "vae"):  # absent, or encoded by an earlier VAE of this row
         _stage(times, "encode", lambda: encode_latents(args.data, work / "vae", cache, **enc, **frames,
-                                                       device=args.device, progress=False))
-    _stage(times, "train_gan", lambda: train_gan(cache, work / "gan", gan=gcfg, train=gtcfg, device=args.device,
-                                                 resume=(work / "gan").exists(), progress=False))
+                                                       device=args.device, progress=False, force=cache.exists()))
+    _stage(times, "train_gan", lambda: train_gan(
+        cache, work / "gan", gan=gcfg, train=gtcfg, device=args.device, resume=(work / "gan").exists(),
+        progress=False, expect_vae_hash=check_cache_vae(cache, vae=work / "vae")))
     evaluator = _evaluator(args, recipe)
     row["vae"] = _stage(times, "eval_vae", lambda: evaluate_reconstruction(
         work / "vae", args.data, evaluator=evaluator, replications=args.replications, device=args.device,
@@ -201,8 +238,12 @@ def main() -> None:
         return
     names = [n for n in args.rows.split(",") if n]
     unknown = [n for n in names if n not in ROWS]
-    if unknown or not args.data:
-        ap.error(f"unknown rows {unknown}" if unknown else "--data is needed to train")
+    if unknown or not names or not args.data:
+        ap.error(f"unknown rows {unknown}" if unknown else "no rows given" if not names else "--data is needed to train")
+    if not args.scale > 0 or args.scale == float("inf"):
+        ap.error(f"--scale must be a positive number, not {args.scale}")
+    if not args.wait_evaluator:
+        _claim(Path(args.work))
     if args.jobs <= 1:
         for name in names:
             run_row(args, name)
@@ -219,20 +260,37 @@ def main() -> None:
     if not args.evaluator and not args.vae_only:  # trained beside the rows, which wait for it only when they measure
         from lsgan.recipes import load_recipe
 
-        trainer = threading.Thread(target=_evaluator, args=(args, load_recipe(args.recipe)))
+        recipe, failures = load_recipe(args.recipe), []
+
+        def train() -> None:
+            try:
+                _evaluator(args, recipe)
+            except Exception as e:  # recorded in <evaluator>.failed too: the rows stop on it
+                failures.append(e)
+
+        trainer = threading.Thread(target=train)
         trainer.start()
     running: list[subprocess.Popen] = []
     for name in names:
-        while len(running) >= args.jobs:
-            running = [p for p in running if p.poll() is None]
+        while sum(p.poll() is None for p in running) >= args.jobs:
             time.sleep(1)
         log = open(Path(args.work) / f"{name}.log", "w")
         running.append(subprocess.Popen(argv + ["--rows", name], env=env, stdout=log, stderr=subprocess.STDOUT))
-    if trainer is not None:
-        trainer.join()
     for p in running:
         p.wait()
+    if trainer is not None:
+        trainer.join()
+        if failures:
+            raise failures[0]
+    bad = [name for name, p in zip(names, running) if p.returncode]
+    if bad:
+        raise SystemExit(f"error: rows {', '.join(bad)} failed: see their logs in {args.work}")
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as e:  # one line, as lsgan's own commands
+        sys.exit(f"error: {e}")

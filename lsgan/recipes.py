@@ -45,7 +45,10 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
         if f.name in values and not _fits(values[f.name], f.type):
             raise ValueError(f"recipe key {where or cls.__name__}.{f.name}: {values[f.name]!r} is not "
                              f"{_KINDS.get(str(f.type), f.type)}")
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as e:  # a dataclass's own check: say which section it is
+        raise ValueError(f"{where or cls.__name__}: {e}") from None
 
 
 _KINDS = {"int": "a whole number", "float": "a number", "bool": "true or false", "str": "text"}

@@ -175,3 +175,32 @@ def test_a_resume_that_changes_the_objective_says_so(shard, tmp_path, capsys):
               device="cpu", resume=True, progress=False)
     said = capsys.readouterr().err
     assert "bone_weight 1.0 -> 2.0" in said and "lr_schedule 'cosine' -> 'constant'" in said
+
+
+@pytest.mark.parametrize("frames", [1, 2, 3])
+def test_windows_too_short_for_a_velocity_or_acceleration_still_train(frames):
+    """A window of 1 frame has no velocity and one of 2 no acceleration: those terms are 0, not an error."""
+    x = torch.randn(2, frames, 263, generator=torch.Generator().manual_seed(frames))
+    x_hat = (x + 0.1).requires_grad_()
+    mask = torch.ones(2, frames, dtype=torch.bool)
+    w = LossWeights("smoothl1", joints=1.0, velocity=1.0, accel=1.0, bones=1.0, contact=1.0)
+    out = vae_objective(x_hat, x, torch.zeros(2, 4), torch.zeros(2, 4), mask, w, torch.zeros(263), torch.ones(263))
+    out["total"].backward()
+    out = {k: float(v.detach()) for k, v in out.items()}
+    assert torch.isfinite(x_hat.grad).all() and out["recon"] > 0
+    assert (out["recon_velocity"] == 0) == (frames < 2) and (out["recon_accel"] == 0) == (frames < 3)
+
+
+def test_a_contact_label_is_its_frame_and_the_next():
+    """Frame t's contact label (features 259:263) is computed from the pair (t, t+1): the term reads it there."""
+    j = _joints(0, B=1, T=6)
+    still = j.clone()
+    still[:, :, list(CONTACT_JOINTS)] = j[:, :1, list(CONTACT_JOINTS)]
+    still[:, 3:, list(CONTACT_JOINTS), 0] += 0.05  # the feet jump 5 cm between frames 2 and 3, nowhere else
+    mask = torch.ones(1, 6, dtype=torch.bool)
+    label = torch.zeros(1, 6, 4, dtype=j.dtype)
+    label[:, 2] = 1.0  # frame 2's label: the pair (2, 3)
+    assert float(kinematic_terms(still, still, mask, label)["contact"]) == pytest.approx(0.05 * 20, rel=1e-6)
+    label = torch.zeros(1, 6, 4, dtype=j.dtype)
+    label[:, 3] = 1.0  # the pair (3, 4): the feet are still
+    assert float(kinematic_terms(still, still, mask, label)["contact"]) == pytest.approx(0.0, abs=1e-9)

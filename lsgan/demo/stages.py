@@ -225,9 +225,12 @@ def _section2(r: dict, *names: str) -> dict:
 
 
 def _scale_train(cfg, steps: int, intervals: tuple[str, ...]):
-    """``cfg`` with ``max_steps = steps`` and each interval shrunk in proportion (at least 1, at most ``steps``)."""
+    """``cfg`` with ``max_steps = steps`` and each interval (and a warm-up) shrunk in proportion (at least 1, at most
+    ``steps``)."""
     ratio = steps / cfg.max_steps
     changes = {"max_steps": steps}
     for name in intervals:
         changes[name] = min(steps, max(1, int(round(getattr(cfg, name) * ratio))))
+    if getattr(cfg, "warmup_steps", 0):  # the warm-up keeps its share of the run
+        changes["warmup_steps"] = min(steps, int(round(cfg.warmup_steps * ratio)))
     return replace(cfg, **changes)

@@ -99,6 +99,16 @@ def write_table(table: Table, out: str | Path, *, force: bool = False) -> tuple[
     return md, js
 
 
+def _windows(data, split: str, min_frames: int, max_frames: int):
+    """The evaluation windows of ``split`` (one per clip); an empty split is an error naming the file."""
+    from lsgan.data.dataset import MotionDataset
+
+    dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False)
+    if not len(dataset):
+        raise ValueError(f"{data}: no clips of {min_frames}+ frames in the {split!r} split")
+    return dataset
+
+
 class Draw(NamedTuple):
     """One real draw: per test window a crop (de-normalised features), its caption and the caption's tokens."""
 
@@ -251,7 +261,6 @@ def evaluate_reconstruction(
 
     APE/AVE are computed as MLD's ComputeMetrics does, in MLD's units (metres x 0.64), so the numbers sit
     beside the paper's VAE table; MPJPE is in metres on global joint positions."""
-    from lsgan.data.dataset import MotionDataset
     from lsgan.data.features import recover_from_ric
     from lsgan.models.vae import load_vae
     from lsgan.device import pick_device
@@ -264,7 +273,7 @@ def evaluate_reconstruction(
         from lsgan.models.evaluator import load_evaluator
 
         ev = load_evaluator(evaluator, device=dev)
-    dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False)
+    dataset = _windows(data, split, min_frames, max_frames)
     table = Table("vae-reconstruction", VAE_COLUMNS, info={"data": str(data), "split": split, "vae": str(vae),
                                                           "windows": len(dataset), "replications": replications,
                                                           "ape_ave_units": "MLD (metres x 0.64)"})
@@ -320,7 +329,6 @@ def evaluate_action_to_motion(
     """HumanAct12-style table: FID (classifier's 30-d features), accuracy, diversity (200 pairs) and
     multimodality (20 pairs per class), for ``samples`` motions with labels and lengths drawn from the real
     test windows; a Real row from the real windows themselves."""
-    from lsgan.data.dataset import MotionDataset
     from lsgan.data.features import recover_from_ric
     from lsgan.generate import Request, generate
     from lsgan.models.evaluator import load_action_classifier
@@ -328,7 +336,7 @@ def evaluate_action_to_motion(
 
     dev = pick_device(device)
     clf = load_action_classifier(classifier, device=dev)
-    dataset = MotionDataset(data, split, min_frames=min_frames, max_frames=max_frames, normalize=False)
+    dataset = _windows(data, split, min_frames, max_frames)
     labels_all = np.array([int(dataset.actions[w.shard][w.clip]) for w in dataset.windows])
     if (labels_all < 0).any():
         raise ValueError(f"{data}: some {split} clips have no action label; the action table needs labelled clips")

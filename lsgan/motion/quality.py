@@ -126,20 +126,32 @@ def toe_above(joints: np.ndarray, height: float = CONTACT_HEIGHT) -> np.ndarray:
     return (_check(joints, 1)[..., FEET, 1] > height).mean(axis=(-2, -1))
 
 
+FIGURES = {  # key: (function of (joints, fps), the fewest frames it is defined on)
+    "foot_skating_ratio": (foot_skating_ratio, 2),
+    "penetration_m": (lambda j, fps: ground_penetration(j), 1),
+    "floating_m": (floating, 2),
+    "jerk_m_s3": (jerk, 4),
+    "bone_std_mm": (lambda j, fps: bone_variation(j), 1),
+}
+
+
 def quality_metrics(joints_list: Sequence[np.ndarray], fps: float = FPS) -> dict[str, float]:
-    """Each figure per motion (T_i, 22, 3), then averaged over motions (each motion weighs the same).
+    """Each figure per motion (T_i, 22, 3), then averaged over the motions long enough for it (each weighs the
+    same; NaN when none is: jerk needs 4 frames, skating and floating 2).
 
     Keys: foot_skating_ratio, penetration_m, floating_m, jerk_m_s3, bone_std_mm, num_motions.
     """
     if len(joints_list) == 0:
         raise ValueError("quality_metrics needs at least one motion")
-    rows = []
-    for i, joints in enumerate(joints_list):
-        try:
-            rows.append((foot_skating_ratio(joints, fps), ground_penetration(joints), floating(joints, fps),
-                         jerk(joints, fps), bone_variation(joints)))
-        except ValueError as e:
-            raise ValueError(f"motion {i}: {e}") from e
-    mean = np.asarray(rows, dtype=np.float64).mean(axis=0)
-    return {"foot_skating_ratio": float(mean[0]), "penetration_m": float(mean[1]), "floating_m": float(mean[2]),
-            "jerk_m_s3": float(mean[3]), "bone_std_mm": float(mean[4]), "num_motions": len(rows)}
+    out: dict[str, float] = {}
+    for key, (figure, fewest) in FIGURES.items():
+        values = []
+        for i, joints in enumerate(joints_list):
+            if np.shape(joints)[0] < fewest:
+                continue
+            try:
+                values.append(float(figure(joints, fps)))
+            except ValueError as e:
+                raise ValueError(f"motion {i}: {e}") from e
+        out[key] = float(np.mean(values)) if values else float("nan")
+    return {**out, "num_motions": len(joints_list)}

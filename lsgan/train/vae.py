@@ -70,8 +70,8 @@ class VAETrainConfig(WindowTrainConfig):
         if self.lr_schedule not in SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(SCHEDULES)}, not {self.lr_schedule!r}")
         for name in ("velocity_weight", "accel_weight", "bone_weight", "contact_weight", "warmup_steps"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, not {getattr(self, name)!r}")
+            if not 0 <= getattr(self, name) < math.inf:
+                raise ValueError(f"{name} must be a finite number >= 0, not {getattr(self, name)!r}")
 
     def weights(self) -> LossWeights:
         mld = self.loss == "mld"
@@ -174,6 +174,9 @@ def _train(env: Env, paths: list[str], mcfg: VAEConfig, cfg: VAETrainConfig) -> 
     prev = env.previous("vae")
     if prev is not None:
         _say_changed_objective(env, prev.meta.get("config", {}).get("train", {}), cfg)
+    if cfg.warmup_steps >= cfg.max_steps > 0:
+        env.say(f"warmup_steps {cfg.warmup_steps} >= max_steps {cfg.max_steps}: the whole run is warm-up, the learning "
+                f"rate reaches {cfg.lr_at(cfg.max_steps - 1):.3g} of {cfg.lr:.3g}")
     seed_everything(cfg.seed + env.dist.rank)
     kw = dict(min_frames=cfg.min_frames, max_frames=cfg.max_frames, unit_length=cfg.unit_length)
     train_ds = MotionDataset(paths, "train", **kw)

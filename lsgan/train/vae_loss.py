@@ -17,11 +17,12 @@ pulls towards no change at all, which measured as a collapse onto one fixed pose
 norm (an L2 penalty, whose minimiser is the conditional mean, as for the features).
 - ``bones``: mean absolute error of the 21 bone lengths, metres. The data's skeleton is one rigid skeleton
   (``preprocess`` retargets every clip onto it), so this asks each frame for that skeleton.
-- ``contact``: MDM's foot-contact loss: the speed (m/s) of the ankles and toes on the frames where the data's
-  contact labels (features 259:263) say that foot is on the ground.
+- ``contact``: MDM's foot-contact loss: the speed (m/s) of the ankles and toes between frames t and t+1 where the
+  data's contact label of frame t (features 259:263, computed from that pair's velocity) says the foot is down.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -57,7 +58,7 @@ class LossWeights:
 def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean of ``values`` (B,T,...) over the frames where ``mask`` (B,T) holds (every trailing element counts)."""
     m = mask.to(values.dtype).reshape(mask.shape + (1,) * (values.dim() - 2))
-    per = values[0, 0].numel()
+    per = math.prod(values.shape[2:])  # from the shape: a window of 1 or 2 frames has no velocity or acceleration
     return (values * m).sum() / (m.sum() * per).clamp_min(1.0)
 
 
@@ -79,7 +80,7 @@ def kinematic_terms(j_hat: torch.Tensor, j: torch.Tensor, mask: torch.Tensor, co
     pairs, triples = mask[:, 1:] & mask[:, :-1], mask[:, 2:] & mask[:, 1:-1] & mask[:, :-2]
     v_hat, v = j_hat.diff(dim=1) * fps, j.diff(dim=1) * fps  # (B,T-1,22,3) m/s
     a_hat, a = v_hat.diff(dim=1) * fps, v.diff(dim=1) * fps  # (B,T-2,22,3) m/s^2
-    on = (contacts[:, 1:] > 0.5) & pairs[..., None]  # (B,T-1,4): the foot is down at both ends of the pair
+    on = (contacts[:, :-1] > 0.5) & pairs[..., None]  # (B,T-1,4): frame t's label is the pair (t, t+1)'s
     feet = v_hat[:, :, list(CONTACT_JOINTS)].norm(dim=-1)  # (B,T-1,4)
     return {
         "joints": _masked_mean(F.smooth_l1_loss(j_hat, j, reduction="none"), mask),
