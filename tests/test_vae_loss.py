@@ -204,3 +204,17 @@ def test_a_contact_label_is_its_frame_and_the_next():
     label = torch.zeros(1, 6, 4, dtype=j.dtype)
     label[:, 3] = 1.0  # the pair (3, 4): the feet are still
     assert float(kinematic_terms(still, still, mask, label)["contact"]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_squared_terms_average_the_squared_error():
+    """kinematic='squared': one 1 cm jitter gives (0.2 m/s)^2 on two pairs, (4, 8, 4 m/s^2)^2 on three triples."""
+    j = _joints(0, B=1, T=10)
+    jitter = j.clone()
+    jitter[:, 5, 3, 0] += 0.01
+    mask = torch.ones(1, 10, dtype=torch.bool)
+    terms = kinematic_terms(jitter, j, mask, _no_contact(j), kinematic="squared")
+    assert float(terms["velocity"]) == pytest.approx(2 * 0.2**2 / (9 * 22), rel=1e-3)
+    assert float(terms["accel"]) == pytest.approx((16 + 64 + 16) / (8 * 22), rel=1e-3)
+    assert VAETrainConfig(kinematic_loss="squared").weights().kinematic == "squared"
+    with pytest.raises(ValueError, match="kinematic_loss"):
+        VAETrainConfig(kinematic_loss="l1")

@@ -11,14 +11,15 @@ directly, in SI units, each averaged over the real frames only:
   loss but apply it to the root-relative positions; this one differences the recovered joints).
 - ``accel``: the same for accelerations, m/s^2: jitter is an acceleration error that positions barely see.
 
-``kinematic`` says how the velocity, acceleration and bone errors are averaged: "norm", the mean of each error
-vector's norm (an L1-type penalty: its gradient does not shrink with the error, and where the decoder is unsure it
-pulls towards no change at all, which measured as a collapse onto one fixed pose); or "squared", the mean squared
-norm (an L2 penalty, whose minimiser is the conditional mean, as for the features).
 - ``bones``: mean absolute error of the 21 bone lengths, metres. The data's skeleton is one rigid skeleton
   (``preprocess`` retargets every clip onto it), so this asks each frame for that skeleton.
 - ``contact``: MDM's foot-contact loss: the speed (m/s) of the ankles and toes between frames t and t+1 where the
   data's contact label of frame t (features 259:263, computed from that pair's velocity) says the foot is down.
+
+``kinematic`` says how the velocity, acceleration and bone errors are averaged: "norm", the mean of each error
+vector's norm (an L1-type penalty: its gradient does not shrink with the error, and where the decoder is unsure it
+pulls towards no change at all, which measured as a collapse onto one fixed pose); or "squared", the mean squared
+norm (an L2 penalty, whose minimiser is the conditional mean, as for the features).
 """
 from __future__ import annotations
 
@@ -31,7 +32,6 @@ import torch.nn.functional as F
 from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS, PARENTS
 
-FEATURE_LOSSES = ("mse", "smoothl1")
 KINEMATIC = ("norm", "squared")
 CONTACT_JOINTS = (7, 10, 8, 11)  # left ankle, left toe, right ankle, right toe: the order of features 259:263
 _PARENTS = list(PARENTS[1:])
