@@ -15,7 +15,8 @@ from pathlib import Path
 
 TINY_RECIPE = """
 vae:
-  model: {latent_dim: 16, d_model: 16, num_layers: 1, num_heads: 2, ff_size: 32, dropout: 0.0, max_len: 200}
+  model: {latent_dim: 16, d_model: 16, num_layers: 1, num_heads: 2, ff_size: 32, dropout: 0.0, max_len: 200,
+          smooth_output: 1, rigid_output: true}
   train: {batch_size: 8, max_steps: 6, val_every: 2, ckpt_every: 2, log_every: 2, lr: 1.0e-3, val_batches: 1}
 gan:
   model: {arch: deep-wgan-gp, latent_dim: 16, hidden_dim: 32, noise_dim: 8}

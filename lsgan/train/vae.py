@@ -29,6 +29,7 @@ import torch
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
+from lsgan.models.decoder_head import skeleton_lengths
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.common import all_reduce_mean, seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Trainer, WindowTrainConfig, fit, launch
@@ -222,6 +223,8 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: F
                          f"({d.world_size} processes); lower batch_size")
     mean, std = torch.as_tensor(train_ds.mean, device=dev), torch.as_tensor(train_ds.std, device=dev)
     vae = MotionVAE(mcfg).to(dev)
+    if mcfg.rigid_output:
+        vae.head.set_skeleton(mean, std, training_skeleton(train_ds, frames))
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     net, amp = env.ddp(vae), env.autocast(cfg.amp)
     weights = cfg.weights()
@@ -247,6 +250,15 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: F
         validate=_validation(env, vae, val_ds, frames, cfg, mean, std),
         extra=lambda p: {**extra, "val_mpjpe_m": p.val.get("mpjpe_m"), "best_val_mpjpe_m": p.best_value},
     )
+
+
+def training_skeleton(ds: MotionDataset, frames: FrameTable, most: int = 20_000) -> torch.Tensor:
+    """The bone lengths (21,) of the training windows' frames (up to ``most``, evenly spaced): their median, so
+    a frame or clip off the data's one skeleton cannot move it."""
+    rows = np.unique(np.concatenate([frames.first_row(w.shard, w.clip) + np.arange(w.start, w.stop)
+                                     for w in ds.windows]))
+    rows = rows[np.linspace(0, len(rows) - 1, min(most, len(rows))).astype(np.int64)]
+    return skeleton_lengths(ds.denormalize(frames.rows(rows[None])[0].cpu()))
 
 
 def _validation(env: Env, vae: MotionVAE, val_ds: MotionDataset, frames: FrameTable, cfg: VAETrainConfig,

@@ -30,11 +30,11 @@ import torch
 import torch.nn.functional as F
 
 from lsgan.data.features import recover_from_ric
-from lsgan.data.skeleton import FPS, PARENTS
+from lsgan.data.skeleton import FPS
+from lsgan.models.decoder_head import bone_lengths
 
 KINEMATIC = ("norm", "squared")
 CONTACT_JOINTS = (7, 10, 8, 11)  # left ankle, left toe, right ankle, right toe: the order of features 259:263
-_PARENTS = list(PARENTS[1:])
 
 
 @dataclass(frozen=True)
@@ -65,11 +65,6 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def _feature_term(x_hat: torch.Tensor, x: torch.Tensor, mask: torch.Tensor, kind: str) -> torch.Tensor:
     err = (x_hat - x) ** 2 if kind == "mse" else F.smooth_l1_loss(x_hat, x, reduction="none")
     return _masked_mean(err, mask)
-
-
-def bone_lengths(joints: torch.Tensor) -> torch.Tensor:
-    """(...,22,3) -> (...,21): the length of every bone below the root."""
-    return (joints[..., 1:, :] - joints[..., _PARENTS, :]).norm(dim=-1)
 
 
 def kinematic_terms(j_hat: torch.Tensor, j: torch.Tensor, mask: torch.Tensor, contacts: torch.Tensor,
