@@ -31,24 +31,28 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 NONE = {"velocity_weight": 0.0, "accel_weight": 0.0, "bone_weight": 0.0, "contact_weight": 0.0}
 MLD = {**NONE, "loss": "mld"}
 ALL = {"loss": "mld", "velocity_weight": 0.5, "accel_weight": 0.02, "bone_weight": 10.0, "contact_weight": 0.5}
-ROWS = {  # name: (what changes, the VAE train values over the recipe's)
+NO_HEAD = {"smooth_output": 0, "rigid_output": False}  # the decoder without lsgan.models.decoder_head
+ROWS = {  # name: (what changes, the VAE train values over the recipe's, the VAE model values over the recipe's)
     "shipped": ("the recipe before issue 32: features-only MSE, 1,000 steps, constant lr",
-                {**NONE, "loss": "mse", "max_steps": 1000, "lr_schedule": "constant", "warmup_steps": 0}),
-    "mse": ("features-only MSE", {**NONE, "loss": "mse"}),
-    "mld": ("MLD's loss (SmoothL1 on features and joints)", MLD),
-    "velocity": ("MLD + velocity 0.5", {**MLD, "velocity_weight": 0.5}),
-    "bones": ("MLD + velocity 0.5 + bones 10", {**MLD, "velocity_weight": 0.5, "bone_weight": 10.0}),
-    "accel": ("MLD + velocity 0.5 + bones 10 + accel 0.02", {**ALL, "contact_weight": 0.0}),
-    "all": ("MLD + velocity 0.5 + bones 10 + accel 0.02 + contact 0.5", ALL),
+                {**NONE, "loss": "mse", "max_steps": 1000, "lr_schedule": "constant", "warmup_steps": 0}, NO_HEAD),
+    "mse": ("features-only MSE", {**NONE, "loss": "mse"}, NO_HEAD),
+    "mld": ("MLD's loss (SmoothL1 on features and joints)", MLD, NO_HEAD),
+    "velocity": ("MLD + velocity 0.5", {**MLD, "velocity_weight": 0.5}, NO_HEAD),
+    "bones": ("MLD + velocity 0.5 + bones 10", {**MLD, "velocity_weight": 0.5, "bone_weight": 10.0}, NO_HEAD),
+    "accel": ("MLD + velocity 0.5 + bones 10 + accel 0.02", {**ALL, "contact_weight": 0.0}, NO_HEAD),
+    "all": ("MLD + velocity 0.5 + bones 10 + accel 0.02 + contact 0.5", ALL, NO_HEAD),
     "strong": ("MLD + velocity 1 + bones 20 + accel 0.05 + contact 1",
                {"loss": "mld", "velocity_weight": 1.0, "accel_weight": 0.05, "bone_weight": 20.0,
-                "contact_weight": 1.0}),
+                "contact_weight": 1.0}, NO_HEAD),
     "constant-lr": ("all terms, constant lr (no warm-up, no cosine)",
-                    {**ALL, "lr_schedule": "constant", "warmup_steps": 0}),
-    "vel2": ("MLD + squared velocity 1", {**MLD, "kinematic_loss": "squared", "velocity_weight": 1.0}),
+                    {**ALL, "lr_schedule": "constant", "warmup_steps": 0}, NO_HEAD),
+    "vel2": ("MLD + squared velocity 1", {**MLD, "kinematic_loss": "squared", "velocity_weight": 1.0}, NO_HEAD),
     "sq": ("MLD + squared velocity 1 + acceleration 0.002 + bones 1000",
-           {**MLD, "kinematic_loss": "squared", "velocity_weight": 1.0, "accel_weight": 0.002, "bone_weight": 1000.0}),
-    "recipe": ("the recipe as shipped: MLD + velocity 0.25 + bones 1 + accel 0.002", {}),
+           {**MLD, "kinematic_loss": "squared", "velocity_weight": 1.0, "accel_weight": 0.002, "bone_weight": 1000.0},
+           NO_HEAD),
+    "head": ("features-only MSE, the decoder smoothed (1 pass) and on the data's skeleton",
+             {**NONE, "loss": "mse"}, {"smooth_output": 1, "rigid_output": True}),
+    "recipe": ("the recipe as it is", {}, {}),
 }
 GAN_COLUMNS = ("fid", "r_precision_top3", "mm_dist", "diversity", "foot_skating_ratio", "jerk_m_s3",
                "penetration_m", "bone_std_mm")
@@ -138,9 +142,9 @@ def run_row(args, name: str) -> dict:
     from lsgan.train.gan import GANTrainConfig, train_gan
     from lsgan.train.vae import VAETrainConfig, train_vae
 
-    recipe, (what, overrides) = load_recipe(args.recipe), ROWS[name]
+    recipe, (what, overrides, model) = load_recipe(args.recipe), ROWS[name]
     work, times = Path(args.work) / name, {}
-    vcfg, tcfg = configs(recipe, "vae", VAEConfig, VAETrainConfig, train_overrides=overrides)
+    vcfg, tcfg = configs(recipe, "vae", VAEConfig, VAETrainConfig, model_overrides=model, train_overrides=overrides)
     gcfg, gtcfg = configs(recipe, "gan", GANConfig, GANTrainConfig)
     tcfg, gtcfg = _scaled(tcfg, args.scale, "val_every", "ckpt_every"), _scaled(gtcfg, args.scale, "eval_every",
                                                                               "ckpt_every")
@@ -151,6 +155,7 @@ def run_row(args, name: str) -> dict:
     row = {"name": name, "what": what, "scale": args.scale, "recipe": args.recipe,
            "vae_train": {k: getattr(tcfg, k) for k in overrides} | {"max_steps": tcfg.max_steps,
                                                                     "lr_schedule": tcfg.lr_schedule},
+           "vae_model": {k: getattr(vcfg, k) for k in ("smooth_output", "rigid_output")},
            "seconds": times, "device": args.device, "machine": platform.node(), "cpus": os.cpu_count(),
            "replications": args.replications}
     save = lambda: _write(out, json.dumps(row, indent=1))  # noqa: E731  (after every stage: a cut run keeps some)
