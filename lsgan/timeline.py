@@ -18,6 +18,9 @@ Layout, for frames n_i and overlap v (n_i > v): segment i fills frames [s_i, s_i
 s_i = n_0 + ... + n_(i-1), total sum(n_i). Frames [s_i, s_i + v) for i > 0 blend the previous segment's v extra
 frames into segment i's first v frames with the raised-cosine weight w_k = (1 - cos(pi (k+1) / (v+1))) / 2 on
 segment i; every other frame is one segment's own features. ``overlap`` 0 is a hard cut (root still carried).
+Blending two poses' joints shortens the bones between them, so each blended frame's joints are put back on the
+bones the two segments have (their median lengths, weighted alike; :func:`lsgan.motion.bones.on_skeleton`): a
+VAE that decodes one skeleton (``rigid_output``) gives a timeline on that skeleton, seams included.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from lsgan.generation import Generation, Request, decoded_motion
+from lsgan.motion.bones import on_skeleton, skeleton_lengths
 
 DEFAULT_OVERLAP = 10
 MIN_FRAMES = 4  # what ``generate`` asks of a motion
@@ -128,8 +132,11 @@ def join_features(parts: list[np.ndarray], frames: list[int], overlap: int) -> n
     for i, (part, n) in enumerate(zip(parts, frames)):
         own = np.array(part[:n], dtype=np.float64)
         if i > 0 and overlap:
-            tail = parts[i - 1][frames[i - 1] : frames[i - 1] + overlap]
-            own[:overlap] = (1.0 - w) * tail + w * own[:overlap]
+            before = np.asarray(parts[i - 1], np.float64)
+            tail = before[frames[i - 1] : frames[i - 1] + overlap]
+            blend = (1.0 - w) * tail + w * own[:overlap]
+            bones = (1.0 - w) * skeleton_lengths(before) + w * skeleton_lengths(own)  # (overlap, 21)
+            own[:overlap] = on_skeleton(blend, bones)
         out.append(own)
     return np.concatenate(out).astype(np.float32)
 

@@ -481,6 +481,13 @@ CASES = [
          "vae/best/config.json: not a checkpoint config"),
     Case("generate-vae-mean-wrong-size", lambda w, p: edited_checkpoint(w, p, "vae", lambda m: m["extra"].update(
         mean=[0.0, 1.0])), 1, "vae/best/config.json: not a checkpoint config"),
+    Case("generate-vae-bone-lengths-negative", lambda w, p: edited_checkpoint(w, p, "vae", lambda m: m["extra"].update(
+        bone_lengths=[-0.1] * 21)), 1, "vae/best/config.json: not a checkpoint config this lsgan version reads "
+         "(ValueError: its 'bone_lengths' is not 21 finite positive numbers)"),
+    Case("generate-vae-bone-lengths-missing", lambda w, p: edited_checkpoint(w, p, "vae", lambda m: m["extra"].pop(
+        "bone_lengths")), 1, "its config has no 'bone_lengths'"),
+    Case("generate-vae-rigid-std-zero", lambda w, p: edited_checkpoint(w, p, "vae", lambda m: m["extra"].update(
+        std=[0.0] * 263)), 1, "its 'std' is not 263 finite positive numbers"),
     Case("generate-prompts-not-utf8", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "--prompts",
                                                     written(w / "prompts.txt", b"\xff\xfewalk\n"), "-o", w / "out"],
          1, "prompts.txt: not a prompts file of UTF-8 text"),

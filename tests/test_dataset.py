@@ -169,3 +169,16 @@ def test_epoch_batches_from_a_frame_table_resume_where_the_loader_would(two_shar
     got += [resumed(s) for s in range(per_epoch + 1, 3 * per_epoch + 1)]
     for a, b in zip(want, got, strict=True):
         _same_batch(a, b)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_shard_with_non_finite_features_is_never_written(tmp_path, bad):
+    """What write_shard accepts, Shard reads: a clip holding NaN or infinity is refused by name, and no file (not
+    even a partial one) is left."""
+    good = np.zeros((8, 263), np.float32)
+    broken = good.copy()
+    broken[3, 100] = bad
+    with pytest.raises(ValueError, match="clip b: features hold NaN or infinite values"):
+        write_shard(tmp_path / "s.h5", [ClipRecord("a", good, "train"), ClipRecord("b", broken, "train")],
+                    source="test", action_names=[], provenance={})
+    assert list(tmp_path.iterdir()) == []

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from lsgan.data.features import joints_to_features, recover_from_ric
 from lsgan.data.shards import ClipRecord, write_shard
 from lsgan.data.skeleton import TARGET_OFFSETS
-from lsgan.models.decoder_head import bone_lengths, on_skeleton, root_frame_joints, skeleton_lengths, smooth_time
+from lsgan.models.decoder_head import smooth_time
+from lsgan.motion.bones import bone_lengths, on_skeleton, root_frame_joints, skeleton_lengths
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.vae import VAETrainConfig, train_vae
 from test_vae import _walk
@@ -136,3 +137,41 @@ def test_decoding_without_the_head_is_the_plain_decoder():
     """smooth_output 0 and rigid_output false add no module and no weights: checkpoints of before load as they were."""
     plain = MotionVAE(replace(TINY, smooth_output=0, rigid_output=False))
     assert plain.head is None and not any(k.startswith("head.") for k in plain.state_dict())
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_numpy_and_torch_put_features_on_the_skeleton_alike(seed):
+    """One implementation for the decoder (torch) and a timeline's seams (numpy): the same numbers from both,
+    with per-frame lengths as a seam uses them."""
+    rng = np.random.default_rng(seed)
+    f = rng.normal(size=(6, 263))
+    per_frame = np.abs(rng.normal(0.2, 0.05, size=(6, 21))) + 0.01
+    for lengths in (LENGTHS.numpy(), per_frame):
+        np.testing.assert_allclose(on_skeleton(f, lengths), on_skeleton(torch.from_numpy(f), torch.from_numpy(lengths))
+                                   .numpy(), atol=1e-12)
+    np.testing.assert_allclose(skeleton_lengths(f), skeleton_lengths(torch.from_numpy(f)).numpy(), atol=1e-6)
+
+
+def test_a_resume_on_other_data_decodes_on_that_datas_skeleton(shard, tmp_path):
+    """Resumed on a shard of other statistics and bones, the head takes the new normalisation and skeleton (they are
+    measured every run, not restored), so the checkpoint holds one normalisation and decodes rigid motion."""
+    feats = [f.copy() for f in joints_to_features(_walks())]
+    for f in feats:  # the root-relative joints and the root's height 20% larger: every bone 20% longer
+        f[:, 3:67] *= 1.2
+    other = tmp_path / "big.h5"
+    write_shard(other, [ClipRecord(f"t{i}", f, "train") for i, f in enumerate(feats)]
+                + [ClipRecord(f"v{i}", f, "val") for i, f in enumerate(feats)], source="test", action_names=[],
+                provenance={})
+    cfg = VAETrainConfig(lr=2e-3, batch_size=8, max_steps=6, val_every=3, ckpt_every=3, log_every=3, unit_length=1)
+    train_vae(shard, tmp_path / "run", model=TINY, train=cfg, device="cpu", progress=False)
+    first = load_vae(tmp_path / "run", prefer="last")[0].head.lengths.clone()
+    train_vae(str(other), tmp_path / "run", model=TINY, train=replace(cfg, max_steps=12), device="cpu",
+              progress=False, resume=True)
+    vae, meta = load_vae(tmp_path / "run", prefer="last")
+    assert meta["step"] == 12 and torch.allclose(vae.head.lengths, first * 1.2, rtol=1e-4)
+    assert np.array_equal(vae.head.mean.numpy(), meta["mean"]) and np.array_equal(vae.head.std.numpy(), meta["std"])
+    with torch.no_grad():
+        x = vae.decode(torch.randn(2, 32, generator=torch.Generator().manual_seed(0)), _mask([30, 30], 30))
+    f = x.double() * torch.from_numpy(meta["std"]).double() + torch.from_numpy(meta["mean"]).double()
+    assert torch.allclose(bone_lengths(recover_from_ric(f)).float(), vae.head.lengths.expand(2, 30, 21), atol=1e-4)

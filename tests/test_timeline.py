@@ -14,7 +14,9 @@ import pytest
 from cli_runs import lsgan
 
 from lsgan.data.features import joints_to_features, recover_from_ric, recover_root
+from lsgan.data.skeleton import PARENTS
 from lsgan.data.synthetic import generate as synthetic_clips
+from lsgan.motion.bones import bone_lengths, root_frame_joints, skeleton_lengths
 from lsgan.motion.rigid import make_rigid
 from lsgan.timeline import (
     TimelineError,
@@ -128,7 +130,16 @@ def test_join_layout_on_real_motions() -> None:
     np.testing.assert_array_equal(out[s1 + v : s2], parts[1][v : frames[1]])
     np.testing.assert_array_equal(out[s2 + v :], parts[2][v:])
     w = crossfade(v)[:, None]
-    np.testing.assert_allclose(out[s1 : s1 + v], (1 - w) * parts[0][s1:] + w * parts[1][:v], atol=1e-6)
+    blend = (1 - w) * parts[0][s1:] + w * parts[1][:v]
+    keep = np.r_[0:4, 67:263]  # every channel but the joints is the cross-fade itself
+    np.testing.assert_allclose(out[s1 : s1 + v][:, keep], blend[:, keep], atol=1e-6)
+    # the joints are the blend's, each bone along the blend's direction at the motions' one length: no seam shrinks
+    joints, blended = root_frame_joints(out.astype(np.float64)), root_frame_joints(blend)
+    skeleton = skeleton_lengths(np.asarray(parts[0], np.float64))
+    np.testing.assert_allclose(bone_lengths(joints), np.broadcast_to(skeleton, (len(out), 21)), atol=1e-5)
+    assert (bone_lengths(blended) < skeleton - 1e-3).any()  # the plain blend did shrink bones
+    unit = lambda j: (j[:, 1:] - j[:, PARENTS[1:]]) / bone_lengths(j)[..., None]  # noqa: E731
+    np.testing.assert_allclose(unit(joints[s1 : s1 + v]), unit(blended), atol=1e-5)
     with pytest.raises(ValueError, match="expected"):
         join_features(parts, [len(p) for p in parts], v)
 

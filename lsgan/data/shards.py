@@ -420,6 +420,8 @@ class _ShardWriter:
         x = np.asarray(clip.features, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != FEATURE_DIM:
             raise ValueError(f"clip {clip.name}: features of shape {x.shape}, expected (T, {FEATURE_DIM})")
+        if not np.isfinite(x).all():  # a shard lsgan writes is one it reads: no NaN or infinity in it
+            raise ValueError(f"clip {clip.name}: features hold NaN or infinite values")
         i, cols = len(self.cols["name"]), self.cols
         for key, value in (("name", clip.name), ("offset", self.rows), ("length", len(x)), ("split", clip.split),
                            ("action", self.action_index[clip.action] if clip.action is not None else -1),

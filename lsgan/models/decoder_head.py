@@ -13,18 +13,20 @@ generation, the server and the ONNX graphs all see them; nothing is fixed afterw
   each bone along its decoded direction, from the root outwards. Every bone then has one length in every frame;
   the angles between the bones of a branching joint (pelvis, spine3) stay learned.
 
-Both are differentiable, so training shapes the decoder through them. The functions are pure (arrays in, arrays
-out); :class:`DecoderHead` holds the normalisation and the skeleton the rigid step needs as buffers, saved with
-the weights.
+Both are differentiable, so training shapes the decoder through them. The bone functions live in
+:mod:`lsgan.motion.bones` (numpy or torch: a timeline's seams use the same code). :class:`DecoderHead` holds the
+normalisation and the skeleton the rigid step needs; they are not weights: ``train-vae`` measures them from its
+data every run (a resume on changed data included) and stores them in the checkpoint's config beside the
+normalisation every VAE has, and :func:`lsgan.models.vae.load_vae` checks and sets them, so the head and the code
+that de-normalises its output can never hold two different normalisations.
 """
 from __future__ import annotations
 
 import torch
 from torch import nn
 
-from lsgan.data.skeleton import NUM_JOINTS, PARENTS
-
-_RIC = slice(4, 67)  # lsgan.data.features.RIC (joints 1..21 in the root's frame; the root height is feature 3)
+from lsgan.data.skeleton import NUM_JOINTS
+from lsgan.motion.bones import on_skeleton
 
 
 def smooth_time(x: torch.Tensor, mask: torch.Tensor, passes: int = 1) -> torch.Tensor:
@@ -39,54 +41,20 @@ def smooth_time(x: torch.Tensor, mask: torch.Tensor, passes: int = 1) -> torch.T
     return x
 
 
-def root_frame_joints(features: torch.Tensor) -> torch.Tensor:
-    """De-normalised features (...,263) -> the 22 joints (...,22,3) in the root's frame: the root at (0, height, 0),
-    joints 1..21 as the ``ric`` slice holds them (a rotation and a shift of the world's joints: same bones)."""
-    y = features[..., 3]
-    root = torch.stack([torch.zeros_like(y), y, torch.zeros_like(y)], -1)[..., None, :]  # (...,1,3)
-    return torch.cat([root, features[..., _RIC].unflatten(-1, (NUM_JOINTS - 1, 3))], -2)
-
-
-def bone_lengths(joints: torch.Tensor) -> torch.Tensor:
-    """(...,22,3) -> (...,21): the length of every bone below the root."""
-    return (joints[..., 1:, :] - joints[..., list(PARENTS[1:]), :]).norm(dim=-1)
-
-
-def skeleton_lengths(features: torch.Tensor) -> torch.Tensor:
-    """The data's bone lengths (21,): the median over the frames (N,263) of de-normalised features."""
-    return bone_lengths(root_frame_joints(features.double())).median(dim=0).values.float()
-
-
-def on_skeleton(features: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-    """De-normalised features (...,263) with their ``ric`` joints on the skeleton ``lengths`` (21,): from the root
-    outwards, each joint at its parent plus the decoded bone's direction times the bone's length (a bone decoded
-    with no length keeps the data's length along +y). Other features are unchanged."""
-    joints = root_frame_joints(features)  # (...,22,3)
-    up = joints.new_tensor([0.0, 1.0, 0.0])
-    out = [joints[..., 0, :]]
-    for k in range(1, NUM_JOINTS):  # PARENTS lists every parent before its children
-        bone = joints[..., k, :] - joints[..., PARENTS[k], :]
-        norm = bone.norm(dim=-1, keepdim=True)
-        direction = torch.where(norm > 1e-8, bone / norm.clamp_min(1e-8), up)
-        out.append(out[PARENTS[k]] + direction * lengths[k - 1])
-    ric = torch.stack(out[1:], -2).flatten(-2)  # (...,63)
-    return torch.cat([features[..., : _RIC.start], ric, features[..., _RIC.stop :]], -1)
-
-
 class DecoderHead(nn.Module):
     """Normalised decoder output (B,T,263) + mask (B,T) -> the same, smoothed and/or on the skeleton.
 
     The rigid step works on de-normalised features, so the head keeps the training normalisation (``mean``,
-    ``std``) and the skeleton (``lengths``) as buffers; :meth:`set_skeleton` fills them before training (they are
-    NaN until then, so an unset head cannot pass for a working one)."""
+    ``std``) and the skeleton (``lengths``) as buffers that are not saved with the weights; :meth:`set_skeleton`
+    fills them (they are NaN until then, so an unset head cannot pass for a working one)."""
 
     def __init__(self, nfeats: int, smooth: int, rigid: bool) -> None:
         super().__init__()
         self.smooth, self.rigid = smooth, rigid
         if rigid:
-            self.register_buffer("mean", torch.full((nfeats,), float("nan")))
-            self.register_buffer("std", torch.full((nfeats,), float("nan")))
-            self.register_buffer("lengths", torch.full((NUM_JOINTS - 1,), float("nan")))
+            self.register_buffer("mean", torch.full((nfeats,), float("nan")), persistent=False)
+            self.register_buffer("std", torch.full((nfeats,), float("nan")), persistent=False)
+            self.register_buffer("lengths", torch.full((NUM_JOINTS - 1,), float("nan")), persistent=False)
 
     def set_skeleton(self, mean: torch.Tensor, std: torch.Tensor, lengths: torch.Tensor) -> None:
         """The training data's normalisation (263,) and bone lengths (21,)."""

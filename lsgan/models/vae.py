@@ -260,6 +260,21 @@ def load_vae(path: str | os.PathLike, device: str | torch.device = "cpu", prefer
     model = MotionVAE(VAEConfig(**meta["config"]["model"]))
     model.load_state_dict(state)
     extra = meta.get("extra", {})
-    meta["mean"] = np.asarray(extra["mean"], np.float32).reshape(model.config.nfeats)
-    meta["std"] = np.asarray(extra["std"], np.float32).reshape(model.config.nfeats)
+    rigid = model.head is not None and model.head.rigid
+    meta["mean"] = _finite(extra, "mean", model.config.nfeats)
+    meta["std"] = _finite(extra, "std", model.config.nfeats, positive=rigid)
+    if rigid:
+        lengths = _finite(extra, "bone_lengths", model.head.lengths.numel(), positive=True)
+        model.head.set_skeleton(torch.from_numpy(meta["mean"]), torch.from_numpy(meta["std"]), torch.from_numpy(lengths))
     return model.to(device).eval(), meta
+
+
+def _finite(extra: dict, key: str, size: int, positive: bool = False) -> np.ndarray:
+    """``extra[key]`` as ``size`` float32 values, each finite (and > 0 if ``positive``), or a ValueError saying
+    what is wrong (the checkpoint reader names the file)."""
+    if key not in extra:
+        raise ValueError(f"its config has no {key!r}")
+    values = np.asarray(extra[key], np.float32).reshape(-1)
+    if values.size != size or not np.isfinite(values).all() or (positive and (values <= 0).any()):
+        raise ValueError(f"its {key!r} is not {size} finite{' positive' if positive else ''} numbers")
+    return values

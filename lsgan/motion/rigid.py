@@ -3,6 +3,8 @@
 A decoder's joints (``recover_from_ric`` of its features) are not rigid: a bone's length drifts within a motion.
 The BVH and GLB exports pose a rigid skeleton, so without this step they would show another motion than the
 joints .npy, the previews and the server. :func:`make_rigid` makes a motion rigid once, right after decoding.
+A VAE with ``rigid_output`` (:mod:`lsgan.models.decoder_head`) already decodes every bone at the data's length;
+this step then only fits the layout of the two branching joints' children, which that head leaves free.
 
 Bone lengths are each motion's median (over its frames) by default: the skeleton the model made for that motion,
 robust to the frames where a bone stretches most, so the rigid motion stays as close as it can to the decoded one.

@@ -29,7 +29,7 @@ import torch
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
-from lsgan.models.decoder_head import skeleton_lengths
+from lsgan.motion.bones import skeleton_lengths
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.common import all_reduce_mean, seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Trainer, WindowTrainConfig, fit, launch
@@ -223,8 +223,11 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: F
                          f"({d.world_size} processes); lower batch_size")
     mean, std = torch.as_tensor(train_ds.mean, device=dev), torch.as_tensor(train_ds.std, device=dev)
     vae = MotionVAE(mcfg).to(dev)
-    if mcfg.rigid_output:
-        vae.head.set_skeleton(mean, std, training_skeleton(train_ds, frames))
+    skeleton = {}
+    if mcfg.rigid_output:  # measured from this run's data, a resume's too: not weights, never restored from before
+        lengths = training_skeleton(train_ds, frames)
+        vae.head.set_skeleton(mean, std, lengths)
+        skeleton = {"bone_lengths": lengths.tolist()}
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     net, amp = env.ddp(vae), env.autocast(cfg.amp)
     weights = cfg.weights()
@@ -242,7 +245,7 @@ def _trainer(env: Env, train_ds: MotionDataset, val_ds: MotionDataset, frames: F
         opt.step()
         return {"loss": losses.pop("total"), **losses, "grad_norm": grad_norm}
 
-    extra = {"mean": train_ds.mean.tolist(), "std": train_ds.std.tolist(), "data": paths}
+    extra = {"mean": train_ds.mean.tolist(), "std": train_ds.std.tolist(), "data": paths, **skeleton}
     return Trainer(
         kind="vae", desc="vae", model=vae, config={"model": asdict(mcfg), "train": asdict(cfg)},
         optimizers={"optimizer": opt}, step=step, metric="mpjpe_m",
