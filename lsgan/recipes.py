@@ -20,8 +20,15 @@ U = TypeVar("U")
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 
+class Recipe(dict):
+    """A recipe's sections, and the file they came from (``source``), which every error about them names."""
+
+    source: str = ""
+
+
 def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
-    """A recipe as a dict of sections. A bare name ('demo') is looked up in the project's ``recipes/``."""
+    """A recipe as a dict of sections (a :class:`Recipe`). A bare name ('demo') is looked up in the project's
+    ``recipes/``."""
     p = Path(path)
     if not p.is_file() and not p.suffix and (RECIPES / f"{p}.yaml").exists():  # a folder named 'demo' is no recipe
         p = RECIPES / f"{p}.yaml"
@@ -31,7 +38,9 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
         data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{p}: a recipe is a mapping of sections (vae:, gan:, diffusion:, ...)")
-    return data
+    recipe = Recipe(data)
+    recipe.source = str(p)
+    return recipe
 
 
 def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
@@ -64,7 +73,8 @@ def _fits(value: Any, annotation: Any) -> bool:
 def section(recipe: dict[str, Any], name: str) -> dict[str, Any]:
     value = recipe.get(name) or {}
     if not isinstance(value, dict):
-        raise ValueError(f"recipe section {name!r} must be a mapping")
+        where = f"{recipe.source}: " if getattr(recipe, "source", "") else ""
+        raise ValueError(f"{where}recipe section {name!r} must be a mapping")
     return value
 
 
@@ -75,6 +85,8 @@ def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: ty
     the recipe's value: what every training command builds from a recipe and its options. ``where``: the
     section's name in error messages (default ``kind``)."""
     r, where = section(recipe, kind), where or kind
+    if getattr(recipe, "source", ""):
+        where = f"{recipe.source}: {where}"
     given = lambda values: {k: v for k, v in (values or {}).items() if v is not None}  # noqa: E731
     return (build(model_cls, {**section(r, "model"), **given(model_overrides)}, f"{where}.model"),
             build(train_cls, {**section(r, "train"), **given(train_overrides)}, f"{where}.train"))
