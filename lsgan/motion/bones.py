@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from lsgan.data.features import RIC
 from lsgan.data.skeleton import NUM_JOINTS, PARENTS
 
-RIC = slice(4, 67)  # lsgan.data.features.RIC
 _BELOW = list(PARENTS[1:])  # the parent of each of joints 1..21
 
 
