@@ -19,7 +19,7 @@ s_i = n_0 + ... + n_(i-1), total sum(n_i). Frames [s_i, s_i + v) for i > 0 blend
 frames into segment i's first v frames with the raised-cosine weight w_k = (1 - cos(pi (k+1) / (v+1))) / 2 on
 segment i; every other frame is one segment's own features. ``overlap`` 0 is a hard cut (root still carried).
 Blending two poses' joints shortens the bones between them, so each blended frame's joints are put back on the
-bones the two segments have (their median lengths, weighted alike; :func:`lsgan.motion.bones.on_skeleton`): a
+bones the two segments have (their median lengths, weighted alike; :func:`lsgan.data.bones.on_skeleton`): a
 VAE that decodes one skeleton (``rigid_output``) gives a timeline on that skeleton, seams included.
 """
 from __future__ import annotations
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from lsgan.generation import Generation, Request, decoded_motion
-from lsgan.motion.bones import on_skeleton, skeleton_lengths
+from lsgan.data.bones import on_skeleton, skeleton_lengths
 
 DEFAULT_OVERLAP = 10
 MIN_FRAMES = 4  # what ``generate`` asks of a motion

@@ -14,7 +14,7 @@ from lsgan.data.features import joints_to_features, recover_from_ric
 from lsgan.data.shards import ClipRecord, write_shard
 from lsgan.data.skeleton import TARGET_OFFSETS
 from lsgan.models.decoder_head import smooth_time
-from lsgan.motion.bones import bone_lengths, on_skeleton, root_frame_joints, skeleton_lengths
+from lsgan.data.bones import bone_lengths, on_skeleton, root_frame_joints, skeleton_lengths
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.vae import VAETrainConfig, train_vae
 from test_vae import _walk

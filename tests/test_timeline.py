@@ -16,7 +16,7 @@ from cli_runs import lsgan
 from lsgan.data.features import joints_to_features, recover_from_ric, recover_root
 from lsgan.data.skeleton import PARENTS
 from lsgan.data.synthetic import generate as synthetic_clips
-from lsgan.motion.bones import bone_lengths, root_frame_joints, skeleton_lengths
+from lsgan.data.bones import bone_lengths, root_frame_joints, skeleton_lengths
 from lsgan.motion.rigid import make_rigid
 from lsgan.timeline import (
     TimelineError,

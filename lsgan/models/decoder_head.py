@@ -14,7 +14,7 @@ generation, the server and the ONNX graphs all see them; nothing is fixed afterw
   the angles between the bones of a branching joint (pelvis, spine3) stay learned.
 
 Both are differentiable, so training shapes the decoder through them. The bone functions live in
-:mod:`lsgan.motion.bones` (numpy or torch: a timeline's seams use the same code). :class:`DecoderHead` holds the
+:mod:`lsgan.data.bones` (numpy or torch: a timeline's seams use the same code). :class:`DecoderHead` holds the
 normalisation and the skeleton the rigid step needs; they are not weights: ``train-vae`` measures them from its
 data every run (a resume on changed data included) and stores them in the checkpoint's config beside the
 normalisation every VAE has, and :func:`lsgan.models.vae.load_vae` checks and sets them, so the head and the code
@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from lsgan.data.skeleton import NUM_JOINTS
-from lsgan.motion.bones import on_skeleton
+from lsgan.data.bones import on_skeleton
 
 
 def smooth_time(x: torch.Tensor, mask: torch.Tensor, passes: int = 1) -> torch.Tensor:

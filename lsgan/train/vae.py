@@ -29,7 +29,7 @@ import torch
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
-from lsgan.motion.bones import skeleton_lengths
+from lsgan.data.bones import skeleton_lengths
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.common import all_reduce_mean, seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Trainer, WindowTrainConfig, fit, launch

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS
-from lsgan.motion.bones import bone_lengths
+from lsgan.data.bones import bone_lengths
 
 KINEMATIC = ("norm", "squared")
 CONTACT_JOINTS = (7, 10, 8, 11)  # left ankle, left toe, right ankle, right toe: the order of features 259:263
