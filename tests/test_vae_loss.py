@@ -16,7 +16,8 @@ from lsgan.data.skeleton import PARENTS, bone_lengths as np_bone_lengths
 from lsgan.models.checkpoint import load_weights
 from lsgan.motion.quality import bone_variation, quality_metrics
 from lsgan.train.vae import VAETrainConfig, mld_vae_loss, reconstruction_errors, train_vae
-from lsgan.train.vae_loss import CONTACT_JOINTS, LossWeights, bone_lengths, kinematic_terms, vae_objective
+from lsgan.data.bones import bone_lengths
+from lsgan.train.vae_loss import CONTACT_JOINTS, LossWeights, kinematic_terms, vae_objective
 from test_vae import TINY, _walk, shard  # noqa: F401  (the fixture)
 
 pytestmark = pytest.mark.usefixtures("one_thread")

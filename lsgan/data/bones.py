@@ -11,8 +11,7 @@ import numpy as np
 
 from lsgan.data.features import RIC
 from lsgan.data.skeleton import NUM_JOINTS, PARENTS
-
-_BELOW = list(PARENTS[1:])  # the parent of each of joints 1..21
+from lsgan.data.skeleton import bones_below_root as bone_lengths  # (...,22,3) -> (...,21)
 
 
 def _is_np(x) -> bool:
@@ -39,11 +38,6 @@ def root_frame_joints(features):
     y = features[..., 3:4]
     root = cat([y * 0, y, y * 0], -1)[..., None, :]  # (...,1,3)
     return cat([root, features[..., RIC].reshape(tuple(features.shape[:-1]) + (NUM_JOINTS - 1, 3))], -2)
-
-
-def bone_lengths(joints):
-    """(...,22,3) -> (...,21): the length of every bone below the root."""
-    return _norm(joints[..., 1:, :] - joints[..., _BELOW, :])[..., 0]
 
 
 def skeleton_lengths(features):

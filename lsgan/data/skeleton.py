@@ -73,9 +73,13 @@ def mirror_joints(joints: np.ndarray) -> np.ndarray:
     return out
 
 
+def bones_below_root(joints):
+    """The length of every bone below the root, (..., 22, 3) -> (..., 21): numpy arrays or torch tensors."""
+    d = joints[..., 1:, :] - joints[..., list(PARENTS[1:]), :]
+    return np.linalg.norm(d, axis=-1) if isinstance(d, np.ndarray) else d.norm(dim=-1)
+
+
 def bone_lengths(joints: np.ndarray) -> np.ndarray:
     """Length of every bone, (..., 22, 3) -> (..., 22); entry 0 (the root) is 0."""
-    j = np.asarray(joints)
-    parents = np.array(PARENTS)
-    lengths = np.linalg.norm(j[..., 1:, :] - j[..., parents[1:], :], axis=-1)
+    lengths = bones_below_root(np.asarray(joints))
     return np.concatenate([np.zeros(lengths.shape[:-1] + (1,), dtype=lengths.dtype), lengths], axis=-1)

@@ -29,11 +29,11 @@ import torch
 from lsgan.data.dataset import FrameTable, LengthBucketSampler, MotionDataset
 from lsgan.data.features import recover_from_ric
 from lsgan.data.shards import Shard
-from lsgan.data.bones import skeleton_lengths
+from lsgan.data.bones import bone_lengths, skeleton_lengths
 from lsgan.models.vae import MotionVAE, VAEConfig, load_vae
 from lsgan.train.common import all_reduce_mean, seed_everything, shard_paths
 from lsgan.train.loop import EpochBatches, Env, Trainer, WindowTrainConfig, fit, launch
-from lsgan.train.vae_loss import KINEMATIC, LossWeights, bone_lengths, vae_objective
+from lsgan.train.vae_loss import KINEMATIC, LossWeights, vae_objective
 
 __all__ = ["VAETrainConfig", "train_vae", "load_vae", "mld_vae_loss", "reconstruction_errors"]
 
