@@ -14,7 +14,9 @@ Per window:
   so the 5-frame speed average sees past the window's ends) averaged over the window's frame pairs;
 - slide: the mean horizontal step (cm/frame) of the feet in GMD's ground contact (under 5 cm) in the window.
 
-Means over windows are printed with a bootstrap 95% interval for the seam-to-inside ratio of each figure.
+Means over windows are printed with a bootstrap 95% interval for the seam-to-inside ratio of each figure. A third
+run joins the same timelines with ``--join continue`` (each segment optimised to start with the motion so far's
+last 5 frames, lsgan.timeline.continued_motion), its seams centred where a segment's own frames begin.
 
     OMP_NUM_THREADS=2 python benchmarks/timeline.py --gan runs/bandai-gan --vae runs/bandai-vae --json timeline.json
 """
@@ -34,7 +36,7 @@ from tqdm import tqdm
 from lsgan.data.captions import _CONTENT, _STYLE, bandai_captions
 from lsgan.motion.quality import SKATE_SPEED, SKATE_WINDOW, _feet, foot_skating_ratio, jerk
 from lsgan.generate import generate_loaded, load_models
-from lsgan.timeline import Segment, timeline_motion
+from lsgan.timeline import Segment, continued_motion, timeline_motion
 
 
 def timelines(n: int, seed: int) -> list[list[Segment]]:
@@ -75,11 +77,16 @@ def windows(joints: np.ndarray, centres: list[int], half: int) -> list[dict]:
     return rows
 
 
-def measure(loaded, takes: list[list[Segment]], overlap: int, half: int) -> dict[str, list[dict]]:
-    """{"seam": rows, "inside": rows} over all timelines joined with ``overlap``."""
+def measure(loaded, takes: list[list[Segment]], overlap: int, half: int, join: str = "crossfade") -> dict[str, list[dict]]:
+    """{"seam": rows, "inside": rows} over all timelines joined with ``overlap`` (crossfade), or continued
+    (``join`` "continue": the seam is where a segment's own frames begin, after the frames it shares)."""
     out: dict[str, list[dict]] = {"seam": [], "inside": []}
-    for k, segments in enumerate(tqdm(takes, desc=f"overlap {overlap}", leave=False)):
-        result = timeline_motion(segments, overlap, lambda r: generate_loaded(loaded, r, seed=k), loaded.max_frames)
+    for k, segments in enumerate(tqdm(takes, desc=f"{join} {overlap}", leave=False)):
+        if join == "continue":
+            result = continued_motion(loaded, segments, seed=k)
+        else:
+            result = timeline_motion(segments, overlap, lambda r: generate_loaded(loaded, r, seed=k),
+                                     loaded.max_frames)
         joints = result.motions[0].joints
         frames = [s.frames for s in segments]
         starts = np.concatenate([[0], np.cumsum(frames)[:-1]])
@@ -123,8 +130,9 @@ def main() -> None:
                          platform.machine()}, "runs": {}}
     print(f"{args.timelines} timelines, {sum(map(len, takes))} segments, windows of +-{args.window} frames")
     print(f"{'':28s} {'windows':>7s} {'jerk m/s^3':>11s} {'skating':>8s} {'slide cm/frame':>15s}")
-    for overlap, name in ((args.overlap, f"overlap {args.overlap}"), (0, "hard cut")):
-        rows = measure(loaded, takes, overlap, args.window)
+    for overlap, name, join in ((args.overlap, f"overlap {args.overlap}", "crossfade"), (0, "hard cut", "crossfade"),
+                                (0, "continue", "continue")):
+        rows = measure(loaded, takes, overlap, args.window, join)
         run = {part: summary(r) for part, r in rows.items()}
         run["seam_over_inside_95"] = {k: ratio_interval(rows["seam"], rows["inside"], k) for k in ("jerk", "skating")}
         result["runs"][name] = run

@@ -15,68 +15,27 @@ unreachable constraint is met as closely as the prior allows and the caller can 
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from lsgan.constraints import Constraints
 from lsgan.data.features import recover_from_ric
-from lsgan.data.skeleton import NUM_JOINTS
-
-
-@dataclass
-class Constraints:
-    """What one motion of ``frames`` frames must do. ``path``: (frames, 2) ground positions (x, z) of the root, NaN
-    rows free; ``keyframes``: {frame: (22, 3) joint positions, NaN entries free}."""
-
-    frames: int
-    path: np.ndarray | None = None
-    keyframes: dict[int, np.ndarray] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.path is not None:
-            self.path = np.asarray(self.path, np.float32)
-            if self.path.shape != (self.frames, 2):
-                raise ValueError(f"a path for {self.frames} frames is ({self.frames}, 2) ground points, "
-                                 f"not {self.path.shape}")
-            if np.isinf(self.path).any():
-                raise ValueError("a path holds an infinite coordinate")
-        for f, pose in list(self.keyframes.items()):
-            pose = np.asarray(pose, np.float32)
-            if not 0 <= f < self.frames:
-                raise ValueError(f"keyframe {f} is beyond the motion's {self.frames} frames (0..{self.frames - 1})")
-            if pose.shape != (NUM_JOINTS, 3) or np.isinf(pose).any():
-                raise ValueError(f"keyframe {f}: a pose is {NUM_JOINTS} joints x 3 finite coordinates (NaN = free), "
-                                 f"not {pose.shape}")
-            self.keyframes[f] = pose
-
-    @property
-    def empty(self) -> bool:
-        return (self.path is None or np.isnan(self.path).all()) and not self.keyframes
+from lsgan.data.skeleton import FACE_JOINTS, FPS, NUM_JOINTS
 
 
 @dataclass
 class ControlSettings:
     noise_steps: int = 30
-    latent_steps: int = 30
+    latent_steps: int = 0  # latent steps after the noise: on by choice (with closing and warping they gained nothing)
     lr: float = 0.05
     noise_prior: float = 0.1  # weight of ((|n|^2 / d) - 1)^2
     latent_prior: float = 0.01  # weight of the mean squared standardised distance from the generator's latent
-
-
-def path_points(waypoints: np.ndarray, frames: int, fps: float = 20.0) -> np.ndarray:
-    """(frames, 2) ground positions from waypoints (K, 3) of (time s, x, z), linearly between them; frames before
-    the first and after the last waypoint are free (NaN)."""
-    w = np.asarray(waypoints, np.float64)
-    if w.ndim != 2 or w.shape[1] != 3 or len(w) == 0 or not np.isfinite(w).all():
-        raise ValueError(f"waypoints are rows of finite (time, x, z), not an array of shape {w.shape}")
-    if (np.diff(w[:, 0]) <= 0).any():
-        raise ValueError("waypoint times must increase")
-    t = np.arange(frames) / fps
-    out = np.stack([np.interp(t, w[:, 0], w[:, 1]), np.interp(t, w[:, 0], w[:, 2])], -1)
-    out[(t < w[0, 0]) | (t > w[-1, 0])] = np.nan
-    return out.astype(np.float32)
+    speed_weight: float = 0.1  # weight of the root's velocity miss (m/s) along the path, against its position (m)
+    pose_weight: float = 1.0  # weight of whole-pose keyframes' miss in their facing frame (what root closing leaves)
 
 
 def _targets(c: list[Constraints], dev: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,11 +56,62 @@ def _targets(c: list[Constraints], dev: torch.device) -> tuple[torch.Tensor, tor
     return target.to(dev), weight.to(dev)
 
 
+def _speed_errors(joints: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """(B,) mean miss (m/s) of the root's ground velocity against the path's, over pairs of set frames: what
+    closing the root onto the path afterwards would add to the motion's own velocity (feet sliding)."""
+    on = weight[:, :, 0, 0] * weight[:, :, 0, 2]  # (B,T)
+    pair = on[:, 1:] * on[:, :-1]
+    step = joints[:, 1:, 0][..., [0, 2]] - joints[:, :-1, 0][..., [0, 2]]
+    want = target[:, 1:, 0][..., [0, 2]] - target[:, :-1, 0][..., [0, 2]]
+    return ((step - want).norm(dim=-1) * pair).sum(1) / pair.sum(1).clamp_min(1) * FPS
+
+
 def _joint_errors(joints: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """(B,) mean distance (m) of the constrained coordinates' joints: a joint counts where any coordinate is set."""
     d = ((joints - target) * weight).norm(dim=-1)  # (B,T,22)
     on = weight.amax(-1)
     return (d * on).sum((1, 2)) / on.sum((1, 2)).clamp_min(1)
+
+
+def _facing_frame(poses: torch.Tensor) -> torch.Tensor:
+    """Poses (K, 22, 3) with the root over the origin and the facing turned onto +z (lsgan.constraints.facing_yaw's
+    facing): what of a whole-pose keyframe is left to meet once the root is closed onto it."""
+    a, b, c, d = FACE_JOINTS
+    across = (poses[:, a] - poses[:, b]) + (poses[:, c] - poses[:, d])  # (K, 3)
+    yaw = torch.atan2(across[:, 2] + 0.0, -across[:, 0] + 0.0)[:, None]  # (K, 1); + 0.0: atan2(0, -0.0) is pi
+    x = poses[..., 0] - poses[:, :1, 0]
+    z = poses[..., 2] - poses[:, :1, 2]
+    cos, sin = torch.cos(yaw), torch.sin(yaw)
+    return torch.stack([x * cos - z * sin, poses[..., 1], z * cos + x * sin], -1)
+
+
+def _whole_poses(constraints: list[Constraints], dev) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(rows (K,), frames (K,), poses in their facing frame (K, 22, 3)) of the keyframes that set every joint."""
+    rows, frames, poses = [], [], []
+    for b, c in enumerate(constraints):
+        for f, pose in c.keyframes.items():
+            if not np.isnan(pose).any():
+                rows.append(b), frames.append(f), poses.append(pose)
+    if not rows:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), torch.zeros(0, NUM_JOINTS, 3)
+    local = _facing_frame(torch.from_numpy(np.stack(poses)))
+    return torch.tensor(rows, device=dev), torch.tensor(frames, device=dev), local.to(dev)
+
+
+def _pose_errors(joints: torch.Tensor, whole: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """(B,) mean joint distance (m) of whole-pose keyframes in their facing frames (0 for rows with none)."""
+    rows, frames, local = whole
+    out = joints.new_zeros(joints.shape[0])
+    if not len(rows):
+        return out
+    d = (_facing_frame(joints[rows, frames]) - local).norm(dim=-1).mean(-1)  # (K,)
+    count = torch.zeros_like(out).index_add_(0, rows, torch.ones_like(d))
+    return out.index_add(0, rows, d) / count.clamp_min(1)
+
+
+def _loss(joints: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, whole, settings: ControlSettings) -> torch.Tensor:
+    return (_joint_errors(joints, target, weight) + settings.speed_weight * _speed_errors(joints, target, weight)
+            + settings.pose_weight * _pose_errors(joints, whole)).sum()
 
 
 @contextmanager
@@ -118,21 +128,24 @@ def _frozen(*modules: torch.nn.Module):
             p.requires_grad_(w)
 
 
-def control(generator, decoder, cond: torch.Tensor, noise: torch.Tensor, constraints: list[Constraints], *,
-            latent_mean: torch.Tensor, latent_std: torch.Tensor, feat_mean: torch.Tensor, feat_std: torch.Tensor,
-            settings: ControlSettings = ControlSettings()) -> tuple[torch.Tensor, dict]:
-    """Latents (B, Z) in the VAE's space for ``cond`` (B, ...) and starting ``noise`` (B, d) that meet
-    ``constraints`` (one per row) as closely as the priors allow, and a report: per row, the mean and largest
-    error (m) of the constrained joints before and after."""
-    with _frozen(generator, decoder):
-        return _control(generator, decoder, cond, noise, constraints, latent_mean, latent_std, feat_mean, feat_std,
-                        settings)
+def control(propose: Callable[[torch.Tensor], torch.Tensor], decoder, noise: torch.Tensor,
+            constraints: list[Constraints], *, latent_mean: torch.Tensor, latent_std: torch.Tensor,
+            feat_mean: torch.Tensor, feat_std: torch.Tensor, settings: ControlSettings = ControlSettings(),
+            frozen: tuple[torch.nn.Module, ...] = ()) -> tuple[torch.Tensor, dict]:
+    """Latents (B, Z) in the VAE's space that meet ``constraints`` (one per row) as closely as the priors allow,
+    starting from ``propose(noise)``: the generator with its condition bound, giving standardised latents (B, Z)
+    for noise (B, d). A proposal that does not depend on the noise (a diffusion's sampled latent) gets no noise
+    steps. ``frozen``: the modules behind ``propose`` (their weights stay out of autograd). The report gives, per
+    row, the mean and largest error (m) of the constrained joints before and after."""
+    with _frozen(decoder, *frozen):
+        return _control(propose, decoder, noise, constraints, latent_mean, latent_std, feat_mean, feat_std, settings)
 
 
-def _control(generator, decoder, cond, noise, constraints, latent_mean, latent_std, feat_mean, feat_std,
+def _control(propose, decoder, noise, constraints, latent_mean, latent_std, feat_mean, feat_std,
              settings: ControlSettings) -> tuple[torch.Tensor, dict]:
     dev = noise.device
     target, weight = _targets(constraints, dev)
+    whole = _whole_poses(constraints, dev)
     lengths = torch.tensor([c.frames for c in constraints], device=dev)
     mask = torch.arange(target.shape[1], device=dev)[None] < lengths[:, None]
 
@@ -141,29 +154,27 @@ def _control(generator, decoder, cond, noise, constraints, latent_mean, latent_s
         return recover_from_ric(x * feat_std + feat_mean)  # (B,T,22,3)
 
     with torch.no_grad():
-        z0 = generator(noise, cond)  # standardised latents
+        z0 = propose(noise)  # standardised latents
         before = _joint_errors(joints(z0), target, weight)
     n = noise.clone().requires_grad_(True)
     opt = torch.optim.Adam([n], lr=settings.lr)
     for _ in range(settings.noise_steps):
         prior = (((n**2).mean(-1) - 1) ** 2).sum() * settings.noise_prior
-        loss = _joint_errors(joints(generator(n, cond)), target, weight).sum() + prior
+        loss = _loss(joints(propose(n)), target, weight, whole, settings) + prior
         opt.zero_grad()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        z_gen = generator(n, cond)
+        z_gen = propose(n)
     z = z_gen.clone().requires_grad_(True)
     opt = torch.optim.Adam([z], lr=settings.lr)
     for _ in range(settings.latent_steps):
         prior = ((z - z_gen) ** 2).mean(-1).sum() * settings.latent_prior
-        loss = _joint_errors(joints(z), target, weight).sum() + prior
+        loss = _loss(joints(z), target, weight, whole, settings) + prior
         opt.zero_grad()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        j = joints(z)
-        after = _joint_errors(j, target, weight)
-        worst = (((j - target) * weight).norm(dim=-1) * weight.amax(-1)).amax((1, 2))
-    report = {"mean_error_m_before": before.tolist(), "mean_error_m": after.tolist(), "max_error_m": worst.tolist()}
+        after = _joint_errors(joints(z), target, weight)
+    report = {"mean_error_m_before": before.tolist(), "mean_error_m": after.tolist()}
     return (z.detach() * latent_std + latent_mean), report

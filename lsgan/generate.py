@@ -9,6 +9,7 @@ halves of guidance: the time from conditions to latents either way) and ``vae_de
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import time
 from dataclasses import dataclass
@@ -29,6 +30,9 @@ from lsgan.generation import (  # noqa: F401
     write_generation,
 )
 from lsgan.generation import draw_noise as numpy_noise
+from lsgan.constraints import Constraints, Placement, check_reach, close_root, measure, reachable_speed, warp_poses
+from lsgan.constraints import WARP_FRAMES
+from lsgan.control import ControlSettings
 from lsgan.threads import LARGE_BATCH, ThreadPolicy
 
 
@@ -163,8 +167,9 @@ def noise_dim(model, meta: dict) -> int:
 
 def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device, *, nums: list[int],
              noise: torch.Tensor, g: torch.Generator | None, encoder, batch_size: int, steps: int | None,
-             guidance: float | None, eta: float | None, timings: dict[str, float]) -> tuple[torch.Tensor, dict]:
-    """(latents (sum(nums), Z) in the VAE's latent space, on dev; the diffusion sampling options used, {} for a GAN).
+             guidance: float | None, eta: float | None, timings: dict[str, float]) -> tuple[torch.Tensor, dict, torch.Tensor]:
+    """(latents (sum(nums), Z) in the VAE's latent space, on dev; the diffusion sampling options used, {} for a GAN;
+    the condition of each motion).
 
     ``nums[i]`` motions for ``requests[i]``, started from the rows of ``noise`` in that order (drawn up front on the
     CPU, so latents depend neither on ``batch_size`` nor on the device's random generator).
@@ -197,18 +202,21 @@ def _latents(model, meta: dict, name, requests: list[Request], dev: torch.device
         z = z * std_z + mean_z
         _sync(dev)
         timings["generator"] = time.perf_counter() - t0
-    return z, sampling
+    return z, sampling, cond
 
 
 def run_models(loaded: Loaded, requests: list[Request], nums: list[int], noise: torch.Tensor, *,
                g: torch.Generator | None = None, batch_size: int = 256, steps: int | None = None,
                guidance: float | None = None, eta: float | None = None,
-               threads: ThreadPolicy | None = None) -> tuple[list[np.ndarray], dict, dict]:
+               threads: ThreadPolicy | None = None,
+               constraints: list[Constraints] | None = None,
+               control_settings: ControlSettings | None = None) -> tuple[list[np.ndarray], dict, dict]:
     """Features (T, 263) of ``nums[i]`` motions per request, from ``noise`` (one row per motion, in order): the
     pass ``generate`` and ``lsgan serve`` share. Returns (features, timings in s, sampling options).
 
     ``threads``: a caller's long-lived policy (a server's: it measures the machine's load across passes), updated
-    here; by default one made for this pass and undone after it.
+    here; by default one made for this pass and undone after it. ``constraints``: one per motion (lsgan.control),
+    met by optimising the latents (:func:`steer`) and then, for a path, by closing the root onto it exactly.
     """
     timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
     dev = loaded.device
@@ -218,12 +226,62 @@ def run_models(loaded: Loaded, requests: list[Request], nums: list[int], noise: 
     with policy if own else contextlib.nullcontext():
         if not own:
             policy.update()
-        z, sampling = _latents(loaded.model, loaded.meta, loaded.gan, requests, dev, nums=nums, noise=noise, g=g,
-                               encoder=loaded.encoder, batch_size=batch_size, steps=steps, guidance=guidance,
-                               eta=eta, timings=timings)
+        z, sampling, cond = _latents(loaded.model, loaded.meta, loaded.gan, requests, dev, nums=nums, noise=noise,
+                                     g=g, encoder=loaded.encoder, batch_size=batch_size, steps=steps,
+                                     guidance=guidance, eta=eta, timings=timings)
         frames = [r.frames for r, k in zip(requests, nums) for _ in range(k)]
+        if constraints is not None:
+            z = steer(loaded, z, noise, cond, constraints, control_settings or ControlSettings(), batch_size, timings)
         feats = _decode(loaded.decoder, loaded.vae_meta, z, frames, dev, batch_size, policy, timings)
+        if constraints is not None:
+            feats = [warp_poses(close_root(f, c.root_points(), c.root_yaws()), c.keyframes, c.fade or WARP_FRAMES)
+                     for f, c in zip(feats, constraints)]
     return feats, timings, sampling
+
+
+def check_constraints(vae_meta: dict, c: Constraints, request: Request) -> Constraints:
+    """``c`` for ``request``, or an error saying why no motion of the VAE ``vae_meta`` decodes (its ``load_vae``
+    meta) can meet it: another length, a root faster than its training data's, a pose of another skeleton."""
+    from lsgan.data.features import recover_from_ric
+    from lsgan.data.skeleton import bone_lengths
+
+    if c.frames != request.frames:
+        raise ValueError(f"the constraints are for {c.frames} frames, the motion has {request.frames}")
+    mean, std = np.asarray(vae_meta["mean"], np.float32), np.asarray(vae_meta["std"], np.float32)
+    skeleton = bone_lengths(recover_from_ric(mean[None])[0].astype(np.float64))
+    check_reach(c, reachable_speed(mean, std), skeleton)
+    return c
+
+
+def steer(loaded: Loaded, z: torch.Tensor, noise: torch.Tensor, cond: torch.Tensor, constraints: list[Constraints],
+          settings: ControlSettings, batch_size: int, timings: dict[str, float]) -> torch.Tensor:
+    """The latents (N, Z) moved to meet one constraint set per motion (:func:`lsgan.control.control`): a GAN's
+    through its generator's noise, then the latent; a diffusion's sampled latent directly (no noise steps: its
+    DDIM chain is too long to differentiate through)."""
+    from lsgan.control import control
+
+    dev, extra, gan = loaded.device, loaded.meta["extra"], loaded.meta["kind"] == "gan"
+    stats = {"latent_mean": torch.as_tensor(np.asarray(extra["latent_mean"], np.float32), device=dev),
+             "latent_std": torch.as_tensor(np.asarray(extra["latent_std"], np.float32), device=dev),
+             "feat_mean": torch.as_tensor(np.asarray(loaded.vae_meta["mean"], np.float32), device=dev),
+             "feat_std": torch.as_tensor(np.asarray(loaded.vae_meta["std"], np.float32), device=dev)}
+    if not gan:
+        settings = dataclasses.replace(settings, noise_steps=0)
+    t0 = time.perf_counter()
+    out = []
+    for b in range(0, len(z), batch_size):
+        zb = (z[b : b + batch_size] - stats["latent_mean"]) / stats["latent_std"]
+        cb = cond[b : b + batch_size]
+
+        def propose(n: torch.Tensor, cb=cb, zb=zb) -> torch.Tensor:
+            return loaded.model.generator(n, cb) if gan else zb
+
+        zc, _ = control(propose, loaded.decoder, noise[b : b + batch_size].to(dev), constraints[b : b + batch_size],
+                        settings=settings, frozen=(loaded.model,), **stats)
+        out.append(zc)
+    _sync(dev)
+    timings["control"] = time.perf_counter() - t0
+    return torch.cat(out)
 
 
 def sample_latents(
@@ -246,8 +304,8 @@ def sample_latents(
     model, meta = load_generator(gen, device=dev)
     encoder = text_encoder_for(model, meta.get("extra", {}), gen, dev, text_encoder_path)
     noise, g = draw_noise(seed, len(requests) * num, noise_dim(model, meta))
-    z, _ = _latents(model, meta, gen, requests, dev, nums=[num] * len(requests), noise=noise, g=g, encoder=encoder,
-                    batch_size=batch_size, steps=steps, guidance=guidance, eta=eta, timings={})
+    z, _, _ = _latents(model, meta, gen, requests, dev, nums=[num] * len(requests), noise=noise, g=g,
+                       encoder=encoder, batch_size=batch_size, steps=steps, guidance=guidance, eta=eta, timings={})
     return z.cpu().numpy()
 
 
@@ -266,6 +324,9 @@ def generate(
     guidance: float | None = None,
     eta: float | None = None,
     fix_feet: bool = False,
+    constraints: Constraints | None = None,
+    control_settings: ControlSettings | None = None,
+    placement: Placement | None = None,
 ) -> Generation:
     """``num`` motions per request. Deterministic under ``seed`` (same inputs, same device -> same motions).
     ``fix_feet``: feet held still in contact, once, on the motion of record (:func:`decoded_motion`).
@@ -279,19 +340,37 @@ def generate(
     loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path,
                          strict_pairing=strict_pairing)
     return generate_loaded(loaded, requests, num=num, seed=seed, batch_size=batch_size, steps=steps,
-                           guidance=guidance, eta=eta, fix_feet=fix_feet)
+                           guidance=guidance, eta=eta, fix_feet=fix_feet, constraints=constraints,
+                           control_settings=control_settings, placement=placement)
 
 
 def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, seed: int = 0, batch_size: int = 256,
                     steps: int | None = None, guidance: float | None = None, eta: float | None = None,
-                    fix_feet: bool = False) -> Generation:
-    """:func:`generate` with the models already loaded (the same motions for the same arguments)."""
+                    fix_feet: bool = False, constraints: Constraints | None = None,
+                    control_settings: ControlSettings | None = None, placement: Placement | None = None) -> Generation:
+    """:func:`generate` with the models already loaded (the same motions for the same arguments).
+
+    ``constraints``: what every motion must do, in its own frame (:mod:`lsgan.constraints`); ``placement``: where
+    the constrained motions then stand (a continuation's or in-between's: in the frame of the motions they join).
+    """
+    control_settings = control_settings or ControlSettings()
     noise, g = draw_noise(seed, len(requests) * num, noise_dim(loaded.model, loaded.meta))
+    each = None if constraints is None else [check_constraints(loaded.vae_meta, constraints, r) for r in requests for _ in
+                                             range(num)]
     feats, timings, sampling = run_models(loaded, requests, [num] * len(requests), noise, g=g, batch_size=batch_size,
-                                          steps=steps, guidance=guidance, eta=eta)
+                                          steps=steps, guidance=guidance, eta=eta, constraints=each,
+                                          control_settings=control_settings)
     motions = [decoded_motion(requests[k // num], k % num, f, fix_feet) for k, f in enumerate(feats)]
+    if each is not None:
+        for m, c in zip(motions, each):
+            m.control = measure(m.joints, c)
+            if placement is not None:
+                m.joints, m.raw_joints = placement.apply(m.joints), placement.apply(m.raw_joints)
     return Generation(motions=motions, timings_s=timings, gan=loaded.gan, vae=loaded.vae, seed=seed,
-                      kind=loaded.meta["kind"], sampling=sampling, fix_feet=fix_feet)
+                      kind=loaded.meta["kind"], sampling=sampling, fix_feet=fix_feet,
+                      control=None if constraints is None else {
+                          **constraints.describe(control_settings),
+                          **({"placement": placement.describe()} if placement is not None else {})})
 
 
 def _decode(decoder, vmeta: dict, z: torch.Tensor, frames: list[int], dev: torch.device, batch_size: int,

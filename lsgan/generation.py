@@ -59,6 +59,7 @@ class Motion:
     features: np.ndarray  # (T, 263), de-normalised
     joints: np.ndarray  # (T, 22, 3): the motion of record, made rigid (lsgan.motion.rigid)
     raw_joints: np.ndarray | None = None  # (T, 22, 3): recover_from_ric of the features, as decoded
+    control: dict | None = None  # constraints given: how far ``joints`` are from them (lsgan.constraints.measure)
 
 
 def draw_noise(seed: int, n: int, dim: int) -> np.ndarray:
@@ -98,6 +99,7 @@ class Generation:
     checkpoints: dict | None = None
     timeline: dict | None = None  # ``generate --timeline``: its segments and how they were joined (lsgan.timeline)
     fix_feet: bool = False  # the motions' feet held still in contact (decoded_motion), once, for every output
+    control: dict | None = None  # constraints given: what they were and the optimiser's settings (lsgan.control)
 
     @property
     def ms_per_motion(self) -> float:
@@ -163,6 +165,7 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
             "index": i, "text": m.request.text, "action": m.request.action, "frames": int(len(m.features)),
             "seconds": len(m.features) / FPS, "sample": m.sample, "features": f"{stem}_features.npy",
             "joints": f"{stem}_joints.npy", **({"raw_joints": f"{stem}_joints_raw.npy"} if raw_joints else {}),
+            **({"control": m.control} if m.control is not None else {}),
         })
     sources = _checkpoints(result)
     generator = sources["generator"]
@@ -180,6 +183,8 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
     }
     if result.timeline is not None:
         manifest["timeline"] = result.timeline
+    if result.control is not None:
+        manifest["control"] = result.control
     path = outputs.claim_file(out / "manifest.json", force=True)
     with atomic_file(path, "w", encoding="utf-8") as fh:
         json.dump(manifest, fh, indent=1)

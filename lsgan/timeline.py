@@ -37,6 +37,7 @@ from lsgan.generation import Generation, Request, decoded_motion
 from lsgan.data.bones import on_skeleton, skeleton_lengths
 
 DEFAULT_OVERLAP = 10
+JOINS = ("crossfade", "continue")
 MIN_FRAMES = 4  # what ``generate`` asks of a motion
 FORMAT = "'prompt#frames', e.g. 'walk forward#80'"
 
@@ -168,13 +169,73 @@ def timeline_motion(segments: list[Segment], overlap: int, run: Callable[[list[R
 def generate_timeline(gan: str | os.PathLike, vae: str | os.PathLike | None, segments: list[Segment], *,
                       overlap: int = DEFAULT_OVERLAP, source: str | None = None, seed: int = 0,
                       device: str = "auto", text_encoder_path: str | None = None, batch_size: int = 256,
-                      steps: int | None = None, guidance: float | None = None, fix_feet: bool = False) -> Generation:
+                      steps: int | None = None, guidance: float | None = None, fix_feet: bool = False,
+                      join: str = "crossfade") -> Generation:
     """One motion of sum(frames) from ``segments``, by the generator's torch checkpoints (an ONNX export's:
     :func:`lsgan.deploy.runtime.generate_timeline_onnx`). Deterministic under ``seed``, like ``generate``;
-    ``fix_feet`` as there."""
+    ``fix_feet`` as there. ``join``: "crossfade" (the module docstring) or "continue" (:func:`continued_motion`;
+    ``overlap`` is not used)."""
     from lsgan.generate import generate_loaded, load_models
 
+    if join not in JOINS:
+        raise ValueError(f"join must be one of {', '.join(JOINS)}, not {join!r}")
     loaded = load_models(gan, vae, device=device, text_encoder_path=text_encoder_path)
+    if join == "continue":
+        return continued_motion(loaded, segments, seed=seed, batch_size=batch_size, steps=steps, guidance=guidance,
+                                fix_feet=fix_feet, source=source)
     run = lambda r: generate_loaded(loaded, r, seed=seed, batch_size=batch_size, steps=steps,  # noqa: E731
                                     guidance=guidance, fix_feet=fix_feet)
     return timeline_motion(segments, overlap, run, loaded.max_frames, source)
+
+
+def continued_motion(loaded, segments: list[Segment], *, seed: int, source: str | None = None, fix_feet: bool = False,
+                     **options) -> Generation:
+    """``--join continue``: segment 0 as ``generate`` makes it (seed ``seed``); each later segment i generated from
+    seed ``seed + i`` at its length plus the 5 frames it shares with the motion so far, optimised and closed to
+    start with that motion's last 5 frames (:func:`lsgan.constraints.continuing`, in the root frame the features
+    have there), and its features put in place of those frames. The features are then one sequence, as a
+    cross-faded timeline's: joints are recovered and made rigid once."""
+    from lsgan.constraints import CONTINUE_FRAMES, continuing, root_frame
+    from lsgan.data.features import recover_from_ric
+    from lsgan.generate import generate_loaded
+    from lsgan.motion.rigid import make_rigid
+
+    check_continued(segments, loaded.max_frames)
+    k = CONTINUE_FRAMES
+    first = generate_loaded(loaded, [Request(text=segments[0].text, frames=segments[0].frames)], seed=seed, **options)
+    feats, reports, timings = first.motions[0].features, [None], dict(first.timings_s)
+    for i, seg in enumerate(segments[1:], 1):
+        where = root_frame(feats, len(feats) - k)
+        joints = make_rigid(recover_from_ric(feats))[-k:]
+        constraints, _ = continuing(joints, seg.frames + k, overlap=k, frame=where)
+        part = generate_loaded(loaded, [Request(text=seg.text, frames=seg.frames + k)], seed=seed + i,
+                               constraints=constraints, **options)
+        feats = np.concatenate([feats[: len(feats) - k], part.motions[0].features])
+        reports.append(part.motions[0].control)
+        timings = {name: timings.get(name, 0.0) + t for name, t in part.timings_s.items()}
+    text = "; ".join(s.text for s in segments)
+    motion = decoded_motion(Request(text=text, frames=len(feats)), 0, feats, fix_feet)
+    starts = np.concatenate([[0], np.cumsum([s.frames for s in segments])[:-1]]).tolist()
+    timeline = {
+        "source": str(source) if source else "inline",
+        "join": f"continue: each segment starts with the motion so far's last {k} frames (lsgan.constraints."
+                "continuing), its features in place of them; root integrated once (lsgan.timeline)",
+        "segments": [{"text": s.text, "frames": s.frames, "start": int(a), "seed": seed + i,
+                      **({"control": r} if r is not None else {})}
+                     for i, (s, a, r) in enumerate(zip(segments, starts, reports))],
+    }
+    return dataclasses.replace(first, motions=[motion], timeline=timeline, timings_s=timings, control=None)
+
+
+def check_continued(segments: list[Segment], max_frames: int) -> None:
+    """ValueError naming the segment that ``--join continue`` cannot make: too short to hold more than the shared
+    frames, or with them longer than the model decodes."""
+    from lsgan.constraints import CONTINUE_FRAMES
+
+    for i, s in enumerate(segments):
+        extra = CONTINUE_FRAMES if i else 0
+        least = max(MIN_FRAMES, CONTINUE_FRAMES) if len(segments) > 1 else MIN_FRAMES
+        if s.frames < least or s.frames + extra > max_frames:
+            raise ValueError(f"{s.where}: {s.frames} frames{f' + {extra} shared' if extra else ''}; a segment "
+                             f"needs {least} to {max_frames - extra} with --join continue (the next segment "
+                             f"starts with the last {CONTINUE_FRAMES} frames of the take)")

@@ -1,36 +1,45 @@
-"""Control (lsgan.control): constraints met by optimising the generator's noise and then the latent, through the real
-tiny pipeline's generator and decoder; the constraint checks."""
+"""Control (lsgan.control, lsgan.constraints): constraints met by optimising the generator's noise and then the
+latent, through the real tiny pipeline's generator and decoder; the root closed onto a path exactly; the files
+constraints come from; what a manifest records."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
-from lsgan.control import Constraints, ControlSettings, control, path_points
-from lsgan.data.features import recover_from_ric
-from lsgan.generate import Request, _conditions, draw_noise, load_models
+from lsgan.constraints import (Constraints, check_reach, close_root, measure, path_points, read_keyframe,
+                               read_path)
+from lsgan.control import ControlSettings, control
+from lsgan.data.features import recover_from_ric, recover_root
+from lsgan.generate import Request, _conditions, draw_noise, generate_loaded, load_models
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def models(serve_models: Path):
-    loaded = load_models(serve_models / "gan", serve_models / "vae", device="cpu")
+def loaded(serve_models: Path):
+    return load_models(serve_models / "gan", serve_models / "vae", device="cpu")
+
+
+def _stats(loaded):
     extra = loaded.meta["extra"]
-    stats = dict(latent_mean=torch.tensor(extra["latent_mean"]), latent_std=torch.tensor(extra["latent_std"]),
-                 feat_mean=torch.from_numpy(loaded.vae_meta["mean"]), feat_std=torch.from_numpy(loaded.vae_meta["std"]))
-    return loaded, stats
+    return dict(latent_mean=torch.tensor(extra["latent_mean"]), latent_std=torch.tensor(extra["latent_std"]),
+                feat_mean=torch.from_numpy(loaded.vae_meta["mean"]), feat_std=torch.from_numpy(loaded.vae_meta["std"]))
 
 
-def _run(models, constraints: list[Constraints], seed: int = 0, **settings):
-    loaded, stats = models
+def _run(loaded, constraints: list[Constraints], seed: int = 0, **kw):
+    stats = _stats(loaded)
     cond = _conditions(loaded.model, loaded.meta["extra"], "gan", [Request(text="a person walks", frames=40)] *
                        len(constraints), loaded.device, loaded.encoder, {})
     noise, _ = draw_noise(seed, len(constraints), loaded.model.config.noise_dim)
-    z, report = control(loaded.model.generator, loaded.decoder, cond, noise, constraints,
-                        settings=ControlSettings(**settings), **stats)
+    z, report = control(lambda n: loaded.model.generator(n, cond), loaded.decoder, noise, constraints,
+                        settings=ControlSettings(**kw), frozen=(loaded.model,), **stats)
     lengths = torch.tensor([c.frames for c in constraints])
     mask = torch.arange(int(lengths.max()))[None] < lengths[:, None]
     with torch.no_grad():
@@ -38,40 +47,236 @@ def _run(models, constraints: list[Constraints], seed: int = 0, **settings):
     return z, report, recover_from_ric(x).numpy()
 
 
-def test_a_reachable_path_and_keyframe_are_approached_and_the_report_measures_what_was_decoded(models):
-    """The root path and a wrist of another seed's motion (so a latent meets them exactly): the optimised motion is
-    much closer than the seed's own, and the reported errors are those of the decoded joints."""
-    _, _, other = _run(models, [Constraints(40)], seed=7, noise_steps=0, latent_steps=0)
-    path = other[0, :, 0, [0, 2]].T.copy()
+def test_a_reachable_keyframe_is_approached_and_the_report_measures_what_was_decoded(loaded):
+    """A wrist of another seed's motion (so a latent meets it exactly): the optimised motion is much closer than
+    the seed's own, the weights are untouched, and the reported error is the decoded joints'."""
+    _, _, other = _run(loaded, [Constraints(40)], seed=7, noise_steps=0, latent_steps=0)
     pose = np.full((22, 3), np.nan, np.float32)
     pose[21] = other[0, 30, 21]
-    c = Constraints(40, path=path, keyframes={30: pose})
-    z, report, joints = _run(models, [c], noise_steps=20, latent_steps=60, lr=0.1)
+    weights = [p.clone() for p in loaded.model.parameters()] + [p.clone() for p in loaded.decoder.parameters()]
+    _, report, joints = _run(loaded, [Constraints(40, keyframes={30: pose})], noise_steps=20, latent_steps=60, lr=0.1)
     assert report["mean_error_m"][0] < 0.5 * report["mean_error_m_before"][0], report
-    root = np.linalg.norm(joints[0, :, 0, [0, 2]].T - path, axis=-1)  # (40,)
-    wrist = np.linalg.norm(joints[0, 30, 21] - pose[21])
-    assert np.isclose(report["mean_error_m"][0], (root.sum() + wrist) / 41, atol=1e-4)
-    assert np.isclose(report["max_error_m"][0], max(root.max(), wrist), atol=1e-4)
+    assert np.isclose(report["mean_error_m"][0], np.linalg.norm(joints[0, 30, 21] - pose[21]), atol=1e-4)
+    after = list(loaded.model.parameters()) + list(loaded.decoder.parameters())
+    assert all(torch.equal(a, b) for a, b in zip(weights, after))
+    assert all(p.requires_grad for p in after)  # given back as they were
 
 
-def test_the_same_seed_and_constraints_give_the_same_latent_and_free_rows_stay_free(models):
+def test_the_same_seed_and_constraints_give_the_same_latent_and_free_rows_stay_free(loaded):
     path = path_points(np.array([[0.5, 0.0, 0.0], [1.5, 0.0, 1.0]]), 40)  # frames before 0.5 s and after 1.5 s free
     assert np.isnan(path[:10]).all() and np.isnan(path[31:]).all() and not np.isnan(path[10:31]).any()
     c = [Constraints(40, path=path), Constraints(40)]
-    z1, r1, _ = _run(models, c, noise_steps=5, latent_steps=5)
-    z2, r2, _ = _run(models, c, noise_steps=5, latent_steps=5)
+    z1, r1, _ = _run(loaded, c, noise_steps=5, latent_steps=5)
+    z2, r2, _ = _run(loaded, c, noise_steps=5, latent_steps=5)
     assert torch.equal(z1, z2) and r1 == r2
-    assert r1["mean_error_m"][1] == r1["max_error_m"][1] == 0.0  # no constraint: nothing to miss
+    assert r1["mean_error_m"][1] == 0.0  # no constraint: nothing to miss
+
+
+# ---- closing the root onto a path -----------------------------------------------------------------------------
+
+@settings(max_examples=60, deadline=None)
+@given(feats=arrays(np.float32, (30, 263), elements=st.floats(-0.25, 0.25, width=32)),
+       points=arrays(np.float32, (30, 2), elements=st.floats(-4, 4, width=32)),
+       free=arrays(bool, 30), scale=st.sampled_from([0.0, 1.0, 20.0]))
+def test_a_closed_path_is_met_exactly_and_nothing_but_the_root_velocity_changes(feats, points, free, scale):
+    """Any decoded features, any set of path points (frame 0 at the origin or free): the root passes through every
+    set point, heading, height, pose and contacts are untouched, and from 10 frames after the last set point the
+    velocity is the decoded one (the root carries on as it was going, after a fade)."""
+    feats[:, 0] *= scale / 20  # turning from none to fast
+    path = points.copy()
+    path[free] = np.nan
+    path[0] = np.nan if free[0] else 0.0
+    out = close_root(feats, path)
+    _, root = recover_root(out.astype(np.float64))
+    on = ~np.isnan(path).any(-1)
+    assert np.abs(root[on][:, [0, 2]] - path[on]).max(initial=0) < 1e-4
+    assert np.array_equal(out[:, [0, *range(3, 263)]], feats[:, [0, *range(3, 263)]])
+    last = np.nonzero(on)[0].max(initial=0)
+    np.testing.assert_allclose(out[last + 10:-1, 1:3], feats[last + 10:-1, 1:3], atol=1e-5)
+
+
+def test_nothing_to_close_leaves_the_features_as_they_are():
+    feats = np.random.default_rng(0).normal(size=(20, 263)).astype(np.float32)
+    assert np.array_equal(close_root(feats, None), feats)
+    assert np.array_equal(close_root(feats, np.full((20, 2), np.nan)), feats)
+
+
+@settings(max_examples=40, deadline=None)
+@given(shift=st.tuples(st.floats(-50, 50), st.floats(-50, 50)), k=st.integers(2, 6), per_frame=st.booleans(),
+       as_json=st.booleans())
+def test_a_path_file_is_read_as_written_and_moved_to_the_motions_start(tmp_path_factory, shift, k, per_frame,
+                                                                      as_json):
+    rng = np.random.default_rng(k)
+    if per_frame:
+        rows = np.cumsum(rng.uniform(-0.05, 0.05, (k * 5, 2)), 0) + shift
+    else:
+        rows = np.column_stack([np.arange(k) * 0.35, np.cumsum(rng.uniform(-1, 1, (k, 2)), 0) + shift])
+    d = tmp_path_factory.mktemp("p")
+    f = d / ("p.json" if as_json else "p.csv")
+    if as_json:
+        f.write_text(json.dumps({"points": rows.tolist()}))
+    else:
+        f.write_text("# drawn by hand\n" + ("x,z\n" if per_frame else "t,x,z\n") +
+                     "\n".join(",".join(repr(float(v)) for v in r) for r in rows))
+    path = read_path(f, 40)
+    xz = rows[:, -2:] - rows[0, -2:]
+    if per_frame:
+        np.testing.assert_allclose(path[: len(rows)], xz, atol=1e-5)
+        assert np.isnan(path[len(rows):]).all()
+    else:
+        frames = np.round(rows[:, 0] * 20).astype(int)
+        np.testing.assert_allclose(path[frames[frames < 40]], xz[frames < 40], atol=1e-5)
+        assert np.isnan(path[frames[-1] + 1:]).all()
+    assert np.array_equal(path[0], [0, 0])
+
+
+def test_a_keyframe_file_sets_the_joints_it_names(tmp_path):
+    (tmp_path / "hand.json").write_text('{"right_wrist": [0.3, 1.2, 0.4], "0": [0, 0.9, 0]}')
+    f, pose = read_keyframe(f"12:{tmp_path / 'hand.json'}", 40)
+    assert f == 12 and np.allclose(pose[21], [0.3, 1.2, 0.4]) and np.allclose(pose[0], [0, 0.9, 0])
+    assert np.isnan(np.delete(pose, [0, 21], axis=0)).all()
+    np.save(tmp_path / "p.npy", np.ones((22, 3), np.float32))
+    assert np.array_equal(read_keyframe(f"0:{tmp_path / 'p.npy'}", 40)[1], np.ones((22, 3)))
 
 
 @pytest.mark.parametrize("make, phrase", [
     (lambda: Constraints(40, path=np.zeros((39, 2))), "is (40, 2) ground points"),
     (lambda: Constraints(40, path=np.full((40, 2), np.inf)), "infinite"),
+    (lambda: __import__("lsgan.constraints").constraints.Placement(float("nan"), 0, 0), "a finite turn"),
+    (lambda: Constraints(40, path=np.ones((40, 2))), "a path's point on frame 0 is the motion's start"),
     (lambda: Constraints(40, keyframes={40: np.zeros((22, 3))}), "keyframe 40 is beyond the motion's 40 frames"),
     (lambda: Constraints(40, keyframes={3: np.zeros((24, 3))}), "a pose is 22 joints"),
     (lambda: path_points(np.array([[1.0, 0, 0], [0.5, 1, 1]]), 40), "waypoint times must increase"),
     (lambda: path_points(np.array([[0.0, np.nan, 0]]), 40), "finite (time, x, z)"),
+    (lambda: check_reach(Constraints(40, path=path_points(np.array([[0, 0, 0], [1, 9, 0]]), 40)), 5.0),
+     "the root would move at 9.0 m/s between 0.* s; this model's motions reach about 5.0 m/s"),
+    (lambda: check_reach(Constraints(40, path=np.vstack([[np.nan, np.nan], [3.0, 0]] + [[np.nan] * 2] * 38)), 5.0),
+     "the root would move at 60.0 m/s between 0.00 and 0.05 s"),  # from the origin, where every motion starts
+    (lambda: Constraints(40, keyframes={0: np.vstack([[1.0, 0.9, 1.0]] + [[np.nan] * 3] * 21)}),
+     "keyframe 0's root on frame 0 is the motion's start"),
+    (lambda: Constraints(40, keyframes={3: np.full((22, 3), np.nan)}), "keyframe 3 sets no joint"),
+    (lambda: Constraints(40, keyframes={2.5: np.zeros((22, 3))}), "a keyframe's frame is a whole number, not 2.5"),
+    (lambda: Constraints(0), "at least 2 frames"),
+    (lambda: Constraints(40, keyframes={3: np.full((22, 3), 2e4)}), "beyond 10000 m"),
+    (lambda: check_reach(Constraints(40, keyframes={5: np.eye(22, 3, dtype=np.float32) * 3}), 50.0,
+                         np.full(22, 0.1)), "keyframe 5: its bones are"),
 ])
 def test_bad_constraints_are_refused_with_what_is_wrong(make, phrase):
-    with pytest.raises(ValueError, match=phrase.replace("(", r"\(").replace(")", r"\)")):
+    with pytest.raises(ValueError, match=phrase.replace("(", r"\(").replace(")", r"\)").replace(".*", "[0-9. and]*")):
         make()
+
+
+# ---- through generate ----------------------------------------------------------------------------------------
+
+def test_generate_meets_a_path_exactly_says_how_far_the_keyframes_are_and_is_deterministic(loaded):
+    """The motion of record (rigid joints) runs through every set path point within a millimetre, the manifest's
+    figures are those of the motion written, and the same seed gives the same motion."""
+    path = path_points(np.array([[0, 0, 0], [1.0, 0.4, 0.8], [1.95, 0.0, 1.6]]), 40)
+    pose = np.full((22, 3), np.nan, np.float32)
+    pose[20] = [0.2, 1.3, 0.9]
+    c = Constraints(40, path=path, keyframes={25: pose})
+    req = [Request(text="a person walks", frames=40)]
+    g1 = generate_loaded(loaded, req, num=2, seed=3, constraints=c, control_settings=ControlSettings(5, 5))
+    g2 = generate_loaded(loaded, req, num=2, seed=3, constraints=c, control_settings=ControlSettings(5, 5))
+    for m1, m2 in zip(g1.motions, g2.motions):
+        assert np.array_equal(m1.joints, m2.joints) and m1.control == m2.control
+        assert np.abs(m1.joints[:, 0][:, [0, 2]] - path).max() < 1e-3
+        assert m1.control == measure(m1.joints, c)
+        assert np.isclose(m1.control["keyframes_m"]["max"], np.linalg.norm(m1.joints[25, 20] - pose[20]))
+    assert g1.control["path"][0] == [0, 0.0, 0.0] and list(g1.control["keyframes"]) == ["25"]
+    assert g1.control["keyframes"]["25"] == {"20": pytest.approx([0.2, 1.3, 0.9])}
+    assert g1.timings_s["control"] > 0
+
+
+def test_constraints_for_another_length_are_refused(loaded):
+    with pytest.raises(ValueError, match="the constraints are for 30 frames, the motion has 40"):
+        generate_loaded(loaded, [Request(text="walk", frames=40)], constraints=Constraints(30))
+
+
+# ---- continuing and in-betweening -------------------------------------------------------------------------------
+
+@settings(max_examples=50, deadline=None)
+@given(yaw=st.floats(-np.pi, np.pi), x=st.floats(-20, 20), z=st.floats(-20, 20),
+       pose=arrays(np.float32, (22, 3), elements=st.floats(-1, 1, width=32)))
+def test_a_placement_is_undone_exactly_and_a_frame_puts_its_pose_at_the_origin_facing_z(yaw, x, z, pose):
+    from lsgan.constraints import Placement, facing_yaw, frame_at
+
+    p = Placement(yaw, x, z)
+    np.testing.assert_allclose(p.undo(p.apply(pose)), pose, atol=1e-4)
+    across = (pose[2] - pose[1]) + (pose[17] - pose[16])
+    if np.hypot(across[0], across[2]) > 1e-2:  # a pose with a facing: turned by the placement's yaw
+        assert np.isclose(np.angle(np.exp(1j * (facing_yaw(p.apply(pose)) - facing_yaw(pose) - yaw))), 0, atol=1e-3)
+    local = frame_at(pose[None], 0).undo(pose)
+    assert np.allclose(local[0, [0, 2]], 0, atol=1e-4) and np.isclose(local[0, 1], pose[0, 1], atol=1e-5)
+
+
+def test_a_continuation_starts_where_the_motion_it_continues_ends(loaded, tmp_path):
+    """generate, then generate --continue from it: the new motion's first frames stand where the old one's last
+    frames are (its root exactly), and the manifest's figure is the gap measured in that shared frame."""
+    from cli_runs import lsgan
+
+    run = lsgan("generate", "--gan", loaded.gan, "--vae", loaded.vae, "--text", "a person walks", "--frames", 40,
+                "--seed", 1, "-o", tmp_path / "a", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    first = next((tmp_path / "a").glob("*_joints.npy"))
+    run = lsgan("generate", "--gan", loaded.gan, "--vae", loaded.vae, "--text", "a person sits", "--frames", 40,
+                "--continue", first, "-o", tmp_path / "b", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert "keyframe joints: missed by" in run.stderr
+    a, b = np.load(first), np.load(next((tmp_path / "b").glob("*_joints.npy")))
+    manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    gap = np.linalg.norm(a[-5:] - b[:5], axis=-1)  # (5, 22)
+    assert np.abs(a[-5:, 0][:, [0, 2]] - b[:5, 0][:, [0, 2]]).max() < 1e-3
+    assert np.isclose(manifest["motions"][0]["control"]["keyframes_m"]["mean"], gap.mean(), atol=1e-4)
+    assert manifest["control"]["placement"]["x_m"] == pytest.approx(float(a[-5, 0, 0]), abs=1e-5)
+
+
+def test_an_inbetween_is_pinned_at_both_ends(loaded):
+    from lsgan.constraints import inbetween
+
+    a = generate_loaded(loaded, [Request(text="walk", frames=30)], seed=1).motions[0].joints
+    b = generate_loaded(loaded, [Request(text="jump", frames=30)], seed=2).motions[0].joints + [1.0, 0, 0.5]
+    c, place = inbetween(a, b, 40)
+    g = generate_loaded(loaded, [Request(text="turn", frames=40)], seed=3, constraints=c, placement=place,
+                        control_settings=ControlSettings(10, 0))
+    j = g.motions[0].joints
+    assert np.abs(j[:5, 0][:, [0, 2]] - a[-5:, 0][:, [0, 2]]).max() < 1e-3
+    assert np.abs(j[-5:, 0][:, [0, 2]] - b[:5, 0][:, [0, 2]]).max() < 1e-3
+
+
+def test_a_pose_facing_nowhere_sets_no_facing_and_the_callers_keyframes_are_not_changed():
+    """A pose whose hips and shoulders are on one vertical line has no facing (not the pi that atan2(0, -0.0)
+    gives), so closing the root does not turn the body for it; Constraints copies the caller's poses."""
+    from lsgan.constraints import facing_yaw, has_facing
+
+    pose = np.zeros((22, 3), np.float32)
+    pose[:, 1] = np.linspace(0, 1.7, 22)
+    assert not has_facing(pose) and facing_yaw(pose) == 0.0
+    given = {7: pose.astype(np.float64)}
+    c = Constraints(40, keyframes=given)
+    assert c.root_yaws() is None and given[7].dtype == np.float64
+
+
+def test_after_a_run_of_set_frames_the_root_fades_into_its_own_velocity_without_a_jump():
+    """A path set on frames 0..9 at 1 m/s while the decoded root stands still: the closed root's step after frame 9
+    starts at the path's step and shrinks smoothly (no frame-to-frame change above the path's step / 3)."""
+    feats = np.zeros((40, 263), np.float32)
+    path = np.full((40, 2), np.nan, np.float32)
+    path[:10] = np.stack([np.zeros(10), np.arange(10) * 0.05], -1)
+    _, root = recover_root(close_root(feats, path, fade=10).astype(np.float64))
+    step = np.diff(root[:, 2])
+    assert np.allclose(step[:9], 0.05, atol=1e-6) and np.allclose(step[20:], 0.0, atol=1e-6)
+    assert np.abs(np.diff(step[8:21])).max() < 0.05 / 3
+
+
+def test_the_seam_velocity_is_the_change_of_step_where_whole_keyframes_end():
+    from lsgan.constraints import measure
+
+    pose = np.zeros((22, 3), np.float32)
+    pose[:, 1] = np.linspace(0, 1.7, 22)
+    walk = np.stack([pose + [0, 0, 0.05 * t] for t in range(12)])  # 1 m/s forward
+    c = Constraints(12, keyframes={t: walk[t] for t in range(5)})
+    assert measure(walk, c)["seam_velocity_m_s"]["max"] < 1e-5  # carries on at the same velocity
+    stop = walk.copy()
+    stop[5:] = stop[4]  # stands still from frame 5: its step changes by 1 m/s
+    assert np.isclose(measure(stop, c)["seam_velocity_m_s"]["max"], 1.0, atol=1e-4)

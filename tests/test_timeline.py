@@ -290,10 +290,31 @@ def test_overlap_option_and_onnx_runtime(serve_models: Path, tmp_path: Path) -> 
 @pytest.mark.parametrize("args,phrase", [
     (["--timeline", "walk#40", "--text", "x"], "--text: not used with --timeline"),
     (["--timeline", "walk#40", "--frames", 50], "--frames: not used with --timeline"),
-    (["--text", "x", "--overlap", 5], "--overlap goes with --timeline"),
+    (["--text", "x", "--overlap", 5], "--overlap and --join go with --timeline"),
+    (["--text", "x", "--join", "continue"], "--overlap and --join go with --timeline"),
     (["--timeline", "walk#40; run"], "item 2 has no '#frames'"),
 ])
 def test_usage_errors_exit_2(serve_models: Path, tmp_path: Path, args: list, phrase: str) -> None:
     res = lsgan("generate", "--gan", "gan", "--vae", "vae", "-o", tmp_path / "o", *args, cwd=serve_models)
     assert res.returncode == 2 and phrase in res.stderr and "Traceback" not in res.stderr, res.stderr
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_continued_segments_start_where_the_take_is_and_repeat_under_the_seed(serve_models: Path, tmp_path: Path):
+    """--join continue: one motion of the segments' total length; each later segment was generated from seed + i
+    and met the take's last 5 frames (its manifest figure, measured on its own motion of record, is small); the
+    take's root path has no jump at a seam beyond the take's own largest step; the same seed repeats it."""
+    value = "a person walks forward#60; a person jumps#50; a person turns around#40"
+    features, joints, manifest = run_timeline(serve_models, tmp_path / "a", "--timeline", value, "--join",
+                                              "continue", "--seed", 2)
+    assert features.shape == (150, 263) and joints.shape == (150, 22, 3)
+    np.testing.assert_allclose(joints, make_rigid(recover_from_ric(features)), atol=1e-6)
+    segments = manifest["timeline"]["segments"]
+    assert [(s["start"], s["seed"]) for s in segments] == [(0, 2), (60, 3), (110, 4)]
+    assert all(s["control"]["keyframes_m"]["max"] < 0.02 for s in segments[1:]), segments
+    step = np.linalg.norm(np.diff(joints[:, 0, [0, 2]], axis=0), axis=-1)
+    inside = np.delete(step, [59, 60, 109, 110])
+    assert step[[59, 60, 109, 110]].max() <= 1.5 * inside.max()
+    again, _, _ = run_timeline(serve_models, tmp_path / "b", "--timeline", value, "--join", "continue", "--seed", 2)
+    np.testing.assert_array_equal(again, features)

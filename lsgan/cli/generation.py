@@ -16,8 +16,13 @@ Examples:
   lsgan generate --gan runs/act-gan --vae runs/vae --action jump --num 8 -o out/
   lsgan generate --gan runs/gan --vae runs/vae --timeline "walk forward#80; turn around#60; wave#60" -o out/
   lsgan generate --gan runs/gan --vae runs/vae --timeline take.txt --overlap 16 -o out/   # lines: 'prompt#frames'
+  lsgan generate --gan runs/gan --vae runs/vae --timeline "walk#80; sit down#60" --join continue -o out/
   lsgan generate --gan runs/diffusion --vae runs/vae --text "a person waves" --steps 50 --guidance 7.5 -o out/
   lsgan generate --runtime onnx --gan gan-onnx --text "a person walks forward" -o out/   # export-model's folder
+  lsgan generate --gan runs/gan --vae runs/vae --text "a person walks" --path path.csv -o out/  # rows: t,x,z or x,z
+  lsgan generate --gan runs/gan --vae runs/vae --text "a person waves" --keyframe 60:pose.npy -o out/
+  lsgan generate --gan runs/gan --vae runs/vae --text "then sits down" --continue out/000_a-person-walks_joints.npy -o next/
+  lsgan generate --gan runs/gan --vae runs/vae --text "a person turns" --inbetween a.npy b.npy --frames 80 -o mid/
   lsgan --threads 1 generate --runtime onnx --int8 --gan gan-onnx --prompts prompts.txt -o out/
 """)
 @click.option("--gan", required=True, type=In(exists=True),
@@ -37,6 +42,9 @@ Examples:
               "value naming an existing file is read as the file; any other value holding '#' is inline.")
 @click.option("--overlap", type=click.IntRange(0), help="--timeline: frames over which consecutive segments are "
               "cross-faded (default 10; 0: hard cuts).")
+@click.option("--join", type=click.Choice(["crossfade", "continue"]), help="--timeline: how segments meet "
+              "(default crossfade: blended over --overlap frames; continue: each segment optimised to start with the "
+              "last 5 frames of the motion so far, torch runtime).")
 @click.option("--frames", type=int, help="Length in frames at 20 fps (default 120).")
 @click.option("--seconds", type=float, help="Length in seconds (instead of --frames).")
 @click.option("--num", default=1, show_default=True, help="Motions per prompt or action.")
@@ -52,12 +60,25 @@ Examples:
 @click.option("--fix-feet/--no-fix-feet", default=False, show_default=True, help="Hold each foot still while "
               "the features' contact channels say it touches the ground (IK on the leg only), once, on the motion "
               "that every output then shows (*_joints.npy, previews, exports; the server serves motions without).")
+@click.option("--path", "path_file", type=In(exists=True, dir_okay=False), help="A root path on the ground for every "
+              "motion: CSV or JSON rows of 'time_s,x,z' waypoints (linear between them) or 'x,z' per frame, in metres, "
+              "shifted to start where the motion starts (the origin, facing +z). The root passes through it exactly; "
+              "manifest.json says how far every constraint was missed (docs/control.md).")
+@click.option("--keyframe", "keyframes", multiple=True, metavar="FRAME:FILE", help="Joints to hit at FRAME: a .npy of "
+              "the 22 joints (22, 3) or a .json of {joint name: [x, y, z]} for some (repeatable).")
+@click.option("--continue", "continue_from", type=In(exists=True, dir_okay=False), help="A motion to continue "
+              "(joints (T, 22, 3) or features (T, 263) .npy, e.g. an earlier *_joints.npy): each new motion starts with "
+              "its last 5 frames (position, heading, pose, velocity) and is placed where it is.")
+@click.option("--inbetween", nargs=2, type=In(exists=True, dir_okay=False), metavar="A.npy B.npy", help="Two motions "
+              "in one frame: each new motion starts with A's last 5 frames and ends with B's first 5, placed there.")
 @click.option("--force", is_flag=True, help="Write into an existing OUTPUT, first removing the files an earlier lsgan run "
               "wrote there (never other files).")
-def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, frames, seconds, num, seed,
-             text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, fix_feet, force) -> None:
+def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, join, frames, seconds, num, seed,
+             text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, fix_feet, path_file,
+             keyframes, continue_from, inbetween, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
+    from lsgan.data.clip import ClipError
     from lsgan.generation import Request, claim_generation, read_prompts, write_generation
 
     if frames is not None and seconds is not None:
@@ -67,10 +88,21 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
         raise click.UsageError("a motion needs at least 4 frames")
     _check_runtime_options(runtime, vae=vae, int8=int8, text_encoder_path=text_encoder_path, device=device,
                            steps=steps, guidance=guidance)
-    if timeline is not None or overlap is not None:
+    bridged = continue_from is not None or bool(inbetween)
+    controlled = path_file is not None or bool(keyframes) or bridged
+    if controlled and (timeline is not None or runtime == "onnx"):
+        raise click.UsageError("--path, --keyframe, --continue and --inbetween work with --runtime torch and without "
+                               "--timeline (control optimises through the models: onnxruntime has no gradients)")
+    if bridged and (continue_from is not None) + bool(inbetween) + (path_file is not None) + bool(keyframes) > 1:
+        raise click.UsageError("--continue and --inbetween set every constraint themselves: give one of them, "
+                               "without --path or --keyframe")
+    if timeline is not None or overlap is not None or join is not None:
         _check_timeline_options(timeline, texts=texts, prompts=prompts, actions=actions, frames=frames,
                                 seconds=seconds, num=num)
-        return _generate_timeline(timeline, overlap, gan=gan, vae=vae, runtime=runtime, int8=int8, seed=seed,
+        if join == "continue" and (overlap is not None or runtime == "onnx"):
+            raise click.UsageError("--join continue shares 5 frames between segments and optimises through the "
+                                   "models: not with --overlap or --runtime onnx")
+        return _generate_timeline(timeline, overlap, join=join or "crossfade", gan=gan, vae=vae, runtime=runtime, int8=int8, seed=seed,
                                   device=device, text_encoder_path=text_encoder_path, batch_size=batch_size,
                                   steps=steps, guidance=guidance, output=output, raw_joints=raw_joints, force=force,
                                   fix_feet=fix_feet)
@@ -80,7 +112,11 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
     if not requests:
         raise click.UsageError("give --text, --prompts or --action")
     try:
-        claim_generation(output, gan, *([vae] if vae else []), *([prompts] if prompts else []), force=force)
+        constraints, placement = _constraints(path_file, keyframes, continue_from, inbetween, requests, vae) \
+            if controlled else (None, None)
+        inputs = [p for p in (vae, prompts, path_file, continue_from, *(inbetween or ())) if p] + [
+            k.partition(":")[2] for k in keyframes]
+        claim_generation(output, gan, *inputs, force=force)
         if runtime == "onnx":
             from lsgan.deploy.runtime import generate_onnx
 
@@ -90,23 +126,75 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
             from lsgan.generate import generate as run
 
             result = run(gan, vae, requests, num=num, seed=seed, device=device, text_encoder_path=text_encoder_path,
-                         batch_size=batch_size, steps=steps, guidance=guidance, fix_feet=fix_feet)
+                         batch_size=batch_size, steps=steps, guidance=guidance, fix_feet=fix_feet,
+                         constraints=constraints, placement=placement)
         if result.kind == "gan" and (steps is not None or guidance is not None):
             click.echo(f"note: --steps/--guidance ignored: {gan} is a GAN (they set a diffusion model's sampling)",
                        err=True)
         manifest = write_generation(result, output, force=force, raw_joints=raw_joints)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, ClipError) as e:
         fail(str(e))
+    _report_control(result)
     t = result.timings_s
     click.echo(f"{len(result.motions)} motions in {output} ({manifest.name}); {result.ms_per_motion:.2f} ms per motion "
                f"(text {t['text_encoding'] * 1e3:.1f} ms, generator {t['generator'] * 1e3:.1f} ms, "
                f"VAE decoder {t['vae_decoding'] * 1e3:.1f} ms in all)", err=True)
 
 
+def _report_control(result) -> None:
+    """One line per kind of constraint: how closely the motions met it (manifest.json has each motion's)."""
+    import numpy as np
+
+    misses = [m.control for m in result.motions if m.control is not None]
+    for kind, what, unit, scale in (("path_m", "root path: missed by", "cm", 100), ("keyframes_m", "keyframe joints: "
+                                    "missed by", "cm", 100), ("seam_velocity_m_s", "velocity where the shared "
+                                    "frames end: changed by", "m/s", 1)):
+        got = [c[kind] for c in misses if kind in c]
+        if got:
+            click.echo(f"{what} {np.mean([g['mean'] for g in got]) * scale:.2f} {unit} on average, "
+                       f"{max(g['max'] for g in got) * scale:.2f} {unit} at most ({len(got)} motions)", err=True)
+
+
+def _constraints(path_file, keyframes, continue_from, inbetween, requests, vae):
+    """(constraints, placement) of --path and --keyframe, or of --continue / --inbetween, for motions of one length
+    (every request's), checked against the VAE before anything is written."""
+    import numpy as np
+
+    lengths = {r.frames for r in requests}
+    if len(lengths) > 1:
+        raise ValueError(f"constraints need motions of one length; the prompts ask for {sorted(lengths)}")
+    with np.errstate(all="ignore"):  # a huge or broken number is refused by its check, not warned about by numpy
+        return _read_constraints(path_file, keyframes, continue_from, inbetween, requests, vae, lengths.pop())
+
+
+def _read_constraints(path_file, keyframes, continue_from, inbetween, requests, vae, frames):
+    """:func:`_constraints` once the length is known."""
+    from lsgan.constraints import Constraints, continuing, inbetween as bridge, read_keyframe, read_path
+    from lsgan.export.bvh import load_motion_joints
+    from lsgan.generate import check_constraints
+    from lsgan.models.vae import load_vae
+
+    placement = None
+    if continue_from is not None:
+        constraints, placement = continuing(load_motion_joints(continue_from)[0][1], frames, source=continue_from)
+    elif inbetween:
+        a, b = (load_motion_joints(f)[0][1] for f in inbetween)
+        constraints, placement = bridge(a, b, frames, source=f"{inbetween[0]} to {inbetween[1]}")
+    else:
+        path = read_path(path_file, frames) if path_file else None
+        poses = dict(read_keyframe(k, frames) for k in keyframes)
+        if len(poses) < len(keyframes):
+            raise ValueError("two --keyframe options name the same frame")
+        constraints = Constraints(frames, path=path, keyframes=poses, origin=", ".join([path_file] * bool(path_file)
+                                                                                       + list(keyframes)))
+    check_constraints(load_vae(vae)[1], constraints, requests[0])
+    return constraints, placement
+
+
 def _check_timeline_options(timeline, *, texts, prompts, actions, frames, seconds, num) -> None:
     """--timeline sets the prompts and lengths itself; --overlap belongs to it."""
     if timeline is None:
-        raise click.UsageError("--overlap goes with --timeline")
+        raise click.UsageError("--overlap and --join go with --timeline")
     given = [name for name, value in (("--text", texts), ("--prompts", prompts), ("--action", actions),
                                       ("--frames", frames), ("--seconds", seconds)) if value]
     given += ["--num"] if num != 1 else []
@@ -132,6 +220,7 @@ def _generate_timeline(timeline: str, overlap: int | None, *, gan, vae, output, 
         if options.pop("runtime") == "onnx":
             from lsgan.deploy.runtime import generate_timeline_onnx
 
+            options.pop("join")
             result = generate_timeline_onnx(gan, segments, overlap=overlap, source=source, **{
                 k: options[k] for k in ("int8", "seed", "batch_size", "fix_feet")})
         else:

@@ -1,0 +1,539 @@
+"""Constraints on a motion: a root path on the ground and keyframed joints; read, checked, closed and measured.
+
+Torch-free (numpy), so that every runtime shares it: ``lsgan.control`` meets constraints by optimisation, then
+``close_root`` puts the root on the path and keyframes exactly and ``measure`` says how far the motion of record is from each.
+
+Coordinates are the motion's own: metres, Y up, the root at the origin on frame 0 facing +z (every decoded motion
+starts there), 20 fps.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lsgan.data.features import RIC, ROOT_Y, _qrot_yaw, recover_root
+from lsgan.data.skeleton import FACE_JOINTS, FPS, JOINT_NAMES, NUM_JOINTS
+
+START_TOLERANCE = 1e-3  # m: a path's or keyframe root's point on frame 0 is the origin within this
+MAX_COORD = 1e4  # m: coordinates beyond 10 km are refused (float32 keeps millimetres up to about there)
+
+
+@dataclass
+class Constraints:
+    """What one motion of ``frames`` frames must do. ``path``: (frames, 2) ground positions (x, z) of the root, NaN
+    rows free; ``keyframes``: {frame: (22, 3) joint positions, NaN entries free}; ``origin``: where they came from,
+    for messages (e.g. the file a continuation continues)."""
+
+    frames: int
+    path: np.ndarray | None = None
+    keyframes: dict[int, np.ndarray] = field(default_factory=dict)
+    fade: int = 0  # frames over which whole poses' remaining miss fades out (warp_poses); 0: WARP_FRAMES
+    origin: str = ""
+
+    def __post_init__(self) -> None:
+        self.frames = _whole_number(self.frames, "frames")
+        if self.frames < 2:
+            raise ValueError(f"a constrained motion has at least 2 frames, not {self.frames}")
+        if self.path is not None:
+            self.path = np.asarray(self.path, np.float32)
+            if self.path.shape != (self.frames, 2):
+                raise ValueError(f"a path for {self.frames} frames is ({self.frames}, 2) ground points, "
+                                 f"not {self.path.shape}")
+            _check_coordinates(self.path, "a path")
+            _check_start(self.path[0], "a path's point")
+        keyframes = {}
+        for f, pose in self.keyframes.items():
+            f = _whole_number(f, "a keyframe's frame")
+            pose = np.array(pose, np.float32)
+            if not 0 <= f < self.frames:
+                raise ValueError(f"keyframe {f} is beyond the motion's {self.frames} frames (0..{self.frames - 1})")
+            if pose.shape != (NUM_JOINTS, 3):
+                raise ValueError(f"keyframe {f}: a pose is {NUM_JOINTS} joints x 3 coordinates, not {pose.shape}")
+            if np.isnan(pose).all():
+                raise ValueError(f"keyframe {f} sets no joint")
+            _check_coordinates(pose, f"keyframe {f}")
+            if f == 0:
+                _check_start(pose[0, [0, 2]], "keyframe 0's root")
+            keyframes[f] = pose
+        self.keyframes = keyframes
+
+    def root_points(self) -> np.ndarray | None:
+        """(frames, 2) ground points the root must pass through: the path's, and the root's (x, z) of keyframes
+        that set both; None when there are none."""
+        out = np.full((self.frames, 2), np.nan, np.float32) if self.path is None else self.path.copy()
+        for f, pose in self.keyframes.items():
+            if not np.isnan(pose[0, [0, 2]]).any():
+                out[f] = pose[0, [0, 2]]
+        return None if np.isnan(out).all() else out
+
+    def root_yaws(self) -> np.ndarray | None:
+        """(frames,) facings (yaw, rad) the root must take: those of keyframes that set the hips and shoulders
+        apart (a pose with them on one vertical line faces nowhere); None when there are none."""
+        out = np.full(self.frames, np.nan)
+        for f, pose in self.keyframes.items():
+            if not np.isnan(pose[list(FACE_JOINTS)]).any() and has_facing(pose):
+                out[f] = facing_yaw(pose)
+        return None if np.isnan(out).all() else out
+
+    def describe(self, settings=None) -> dict:
+        """What a manifest records: the path's set frames and points, the keyframes' set joints, the settings."""
+        from dataclasses import asdict
+
+        out: dict = {"frames": self.frames}
+        if self.path is not None:
+            on = ~np.isnan(self.path).any(-1)
+            out["path"] = [[int(f), *map(float, self.path[f])] for f in np.nonzero(on)[0]]
+        out["keyframes"] = {str(f): {str(j): [None if np.isnan(v) else float(v) for v in pose[j]]
+                                     for j in range(NUM_JOINTS) if not np.isnan(pose[j]).all()}
+                            for f, pose in sorted(self.keyframes.items())}
+        if settings is not None:
+            out["settings"] = asdict(settings)
+        return out
+
+
+def _whole_number(value, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{what} is a whole number, not {value!r}")
+    return int(value)
+
+
+def _check_coordinates(a: np.ndarray, what: str) -> None:
+    """Set coordinates finite and within :data:`MAX_COORD` metres."""
+    a = np.asarray(a, np.float64)
+    set_ = a[~np.isnan(a)]
+    if np.isinf(set_).any() or (np.abs(set_) > MAX_COORD).any():
+        raise ValueError(f"{what} holds a coordinate that is infinite or beyond {MAX_COORD:.0f} m (metres are "
+                         "expected)")
+
+
+def _check_start(point: np.ndarray, what: str) -> None:
+    """The root's ground point on frame 0, when set, is the origin: every motion starts there."""
+    if not np.isnan(point).any() and np.abs(point).max() > START_TOLERANCE:
+        raise ValueError(f"{what} on frame 0 is the motion's start, the origin (0, 0), not "
+                         f"({point[0]:.3f}, {point[1]:.3f})")
+
+
+def path_points(waypoints: np.ndarray, frames: int, fps: float = 20.0) -> np.ndarray:
+    """(frames, 2) ground positions from waypoints (K, 3) of (time s, x, z), linearly between them; frames before
+    the first and after the last waypoint are free (NaN)."""
+    w = np.asarray(waypoints, np.float64)
+    if w.ndim != 2 or w.shape[1] != 3 or len(w) == 0 or not np.isfinite(w).all():
+        raise ValueError(f"waypoints are rows of finite (time, x, z), not an array of shape {w.shape}")
+    if (np.diff(w[:, 0]) <= 0).any():
+        raise ValueError("waypoint times must increase")
+    t = np.arange(frames) / fps
+    out = np.stack([np.interp(t, w[:, 0], w[:, 1]), np.interp(t, w[:, 0], w[:, 2])], -1)
+    out[(t < w[0, 0] - 1e-9) | (t > w[-1, 0] + 1e-9)] = np.nan  # a waypoint on a frame keeps it (float rounding)
+    return out.astype(np.float32)
+
+
+def facing_yaw(joints: np.ndarray) -> np.ndarray:
+    """The facing of poses (..., 22, 3) as a yaw angle (rad) about +y from +z: the body's forward direction, up x
+    the hips' and shoulders' across (as HumanML3D turns each clip to face +z); 0 for a pose without one."""
+    a, b, c, d = FACE_JOINTS
+    j = np.asarray(joints, np.float64)
+    across = (j[..., a, :] - j[..., b, :]) + (j[..., c, :] - j[..., d, :])
+    # forward = (0, 1, 0) x across = (across_z, 0, -across_x); + 0.0 turns -0.0 into 0.0 (atan2(0, -0.0) is pi)
+    return np.arctan2(across[..., 2] + 0.0, -across[..., 0] + 0.0)
+
+
+def has_facing(pose: np.ndarray) -> bool:
+    """Whether a pose (22, 3) faces somewhere: its hips' and shoulders' across has a horizontal part (1 mm)."""
+    a, b, c, d = FACE_JOINTS
+    j = np.asarray(pose, np.float64)
+    across = (j[a] - j[b]) + (j[c] - j[d])
+    return bool(np.hypot(across[0], across[2]) > 1e-3)
+
+
+def _residual(on: np.ndarray, miss: np.ndarray, frames: int, fade: int) -> np.ndarray:
+    """A miss (K, ...) known on the set frames ``on`` (K,) as a per-frame correction (frames, ...): zero on frame 0
+    (where every motion starts, at the origin facing +z, whatever is asked of it), linear between set frames, held
+    after the last; when the last two frames are both set (a path, a continuation), carried on at their rate of
+    change, fading out over ``fade`` frames (a raised cosine): the velocity does not jump where they end."""
+    miss = np.array(miss, np.float64)
+    if on[0] == 0:
+        miss[0] = 0.0
+    else:
+        on, miss = np.concatenate([[0], on]), np.concatenate([np.zeros((1,) + miss.shape[1:]), miss])
+    t = np.arange(frames)
+    flat = miss.reshape(len(on), -1)
+    out = np.stack([np.interp(t, on, flat[:, k]) for k in range(flat.shape[1])], -1)
+    last = on[-1]
+    if last + 1 < frames and len(on) > 1 and on[-2] == last - 1:  # a run of set frames: its rate is asked for
+        rate = out[last] - out[last - 1]  # (D,)
+        steps = np.arange(1, frames - last)
+        carried = np.cumsum(np.where(steps < fade, 0.5 + 0.5 * np.cos(np.pi * steps / max(fade, 1)), 0.0))
+        out[last + 1:] += carried[:, None] * rate
+    return out.reshape((frames,) + miss.shape[1:])
+
+
+def close_root(features: np.ndarray, points: np.ndarray | None, yaws: np.ndarray | None = None,
+               fade: int = 10) -> np.ndarray:
+    """Features (T, 263) whose root faces every set yaw (T,) and passes through every set ground point (T, 2)
+    exactly (NaN: free; None: nothing to meet). The root's turning channel (0) takes the facing's miss and its
+    ground velocity channels (1, 2) the position's, each spread linearly between set frames and carried on, fading
+    over ``fade`` frames, after the last (:func:`_residual`);
+    height and pose are the decoded ones, so what the optimisation left shows as feet sliding or turning on the
+    spot, which is measured."""
+    f = np.array(features, dtype=np.float64)
+    T = len(f)
+    for name, a, width in (("points", points, (T, 2)), ("yaws", yaws, (T,))):
+        if a is not None and np.shape(a) != width:
+            raise ValueError(f"{name} for {T} frames are {width}, not {np.shape(a)}")
+    if yaws is not None and not np.isnan(yaws).all():
+        on = np.nonzero(~np.isnan(yaws))[0]
+        angle, _ = recover_root(f)
+        from lsgan.data.features import recover_from_ric
+
+        miss = np.angle(np.exp(1j * (np.asarray(yaws, np.float64)[on] - facing_yaw(recover_from_ric(f)[on]))))
+        angle = angle - _residual(on, miss, T, fade) / 2  # a half angle (the yaw quaternion's), turning the body back
+        f[:-1, 0] = np.diff(angle)
+    if points is not None and not np.isnan(points).all():
+        on = np.nonzero(~np.isnan(points).any(-1))[0]
+        angle, root = recover_root(f)
+        ground = root[:, [0, 2]] + _residual(on, np.asarray(points, np.float64)[on] - root[on][:, [0, 2]], T, fade)
+        step = np.zeros((T - 1, 3))
+        step[:, [0, 2]] = np.diff(ground, axis=0)
+        local = _qrot_yaw(angle[1:], step, inverse=False)  # pos[t+1] - pos[t] = R(angle[t+1])^-1 features[t, 1:3]
+        f[:-1, 1], f[:-1, 2] = local[:, 0], local[:, 2]
+    return f.astype(np.float32)
+
+
+WARP_FRAMES = 5  # frames over which a keyframe's remaining pose miss fades out on each side (motion warping)
+
+
+def warp_poses(features: np.ndarray, keyframes: dict[int, np.ndarray], fade: int = WARP_FRAMES) -> np.ndarray:
+    """Features (T, 263) whose root-relative joints (and root height) reach every whole-pose keyframe exactly: the
+    miss at each keyframe, in the root's frame, is added to the frames around it (motion warping, Witkin and
+    Popovic 1995): linear between keyframes up to 2 * ``fade`` frames apart, fading out over ``fade`` frames with
+    a raised cosine beyond. Run after :func:`close_root`, which puts the root's ground position and facing there;
+    keyframes that leave a joint free are the optimisation's alone."""
+    whole = sorted(f for f, pose in keyframes.items() if not np.isnan(pose).any())
+    f = np.array(features, dtype=np.float64)
+    if not whole:
+        return np.asarray(features, np.float32)
+    angle, root = recover_root(f)
+    ric = f[:, RIC].reshape(len(f), NUM_JOINTS - 1, 3)
+    miss = {}
+    for k in whole:
+        pose = np.asarray(keyframes[k], np.float64)
+        rel = pose[1:] - root[k] * [1.0, 0.0, 1.0]
+        want = _qrot_yaw(np.full(NUM_JOINTS - 1, angle[k]), rel, inverse=False)
+        miss[k] = np.concatenate([[pose[0, 1] - f[k, ROOT_Y.start]], (want - ric[k]).ravel()])
+    shift = _warp_field(miss, len(f), fade)  # (T, 1 + 63)
+    f[:, ROOT_Y.start] += shift[:, 0]
+    f[:, RIC] += shift[:, 1:]
+    return f.astype(np.float32)
+
+
+def _warp_field(miss: dict[int, np.ndarray], frames: int, fade: int) -> np.ndarray:
+    """Per-frame displacement (frames, D) that equals ``miss[k]`` on each keyframe k: linear between keyframes at
+    most 2 * fade apart, a raised-cosine fade to zero over ``fade`` frames outside each such run."""
+    keys = sorted(miss)
+    out = np.zeros((frames, len(miss[keys[0]])))
+    runs, run = [], [keys[0]]
+    for k in keys[1:]:
+        if k - run[-1] <= 2 * fade:
+            run.append(k)
+        else:
+            runs.append(run)
+            run = [k]
+    runs.append(run)
+    t = np.arange(frames)
+    for run in runs:
+        values = np.stack([miss[k] for k in run])
+        inside = (t >= run[0]) & (t <= run[-1])
+        out[inside] += np.stack([np.interp(t[inside], run, values[:, d]) for d in range(values.shape[1])], -1)
+        for edge, side in ((run[0], -1), (run[-1], 1)):
+            dist = (t - edge) * side
+            near = (dist > 0) & (dist < fade)
+            out[near] += miss[edge] * (0.5 + 0.5 * np.cos(np.pi * dist[near] / fade))[:, None]
+    return out
+
+
+def measure(joints: np.ndarray, c: Constraints) -> dict:
+    """How far a motion's joints (T, 22, 3) are from ``c``, in metres: the root's ground distance to the path over
+    its set frames, and each keyframed joint's distance over its set coordinates; mean and largest of each, absent
+    when there is nothing of that kind to meet."""
+    j = np.asarray(joints, np.float64)
+    out = {}
+    if c.path is not None and not np.isnan(c.path).all():
+        on = ~np.isnan(c.path).any(-1)
+        d = np.linalg.norm(j[: c.frames, 0][on][:, [0, 2]] - c.path[on], axis=-1)
+        out["path_m"] = {"mean": float(d.mean()), "max": float(d.max())}
+    if c.keyframes:
+        d = []
+        for f, pose in c.keyframes.items():
+            set_ = ~np.isnan(pose)
+            diff = np.where(set_, j[f] - np.nan_to_num(pose), 0.0)
+            d += list(np.linalg.norm(diff, axis=-1)[set_.any(-1)])
+        out["keyframes_m"] = {"mean": float(np.mean(d)), "max": float(np.max(d))}
+    seams = _seam_velocity(j, c)
+    if seams:
+        out["seam_velocity_m_s"] = {"mean": float(np.mean(seams)), "max": float(np.max(seams))}
+    return out
+
+
+def _seam_velocity(j: np.ndarray, c: Constraints) -> list[float]:
+    """Where a run of whole-pose keyframes (two or more consecutive frames: a continuation's, an in-between's)
+    meets the motion's own frames: how much the motion's step there differs from the run's own step, mean over
+    joints, m/s. 0 when the motion carries on at the velocity the keyframes set."""
+    whole = sorted(f for f, p in c.keyframes.items() if not np.isnan(p).any())
+    out = []
+    for f in whole:
+        if f + 1 < len(j) and f - 1 in c.keyframes and f + 1 not in c.keyframes:  # a run ends: the next step
+            want = c.keyframes[f] - c.keyframes[f - 1]
+            out.append(float(np.linalg.norm((j[f + 1] - j[f]) - want, axis=-1).mean() * FPS))
+        if f >= 1 and f + 1 in c.keyframes and f - 1 not in c.keyframes:  # a run starts: the step into it
+            want = c.keyframes[f + 1] - c.keyframes[f]
+            out.append(float(np.linalg.norm((j[f] - j[f - 1]) - want, axis=-1).mean() * FPS))
+    return out
+
+
+def read_path(path: str | os.PathLike, frames: int, fps: float = FPS) -> np.ndarray:
+    """A root path (frames, 2) from a file, shifted so that it starts at the origin where the motion starts.
+
+    CSV (optionally a header line of names; '#' comments) or JSON (a list of rows, or {"points": rows}): rows of
+    three numbers are waypoints (time s, x, z) from 0 s, at least a frame apart, within the motion, linear between
+    them and free after the last; rows of two are one ground point (x, z) per frame from frame 0, free after the
+    last. Errors name the file."""
+    from lsgan.errors import reading
+
+    with reading(path, "a path: rows of (time s, x, z) waypoints or (x, z) per frame, as CSV or JSON"):
+        rows = _rows(Path(path))
+        if rows.ndim != 2 or rows.shape[1] not in (2, 3) or not len(rows):
+            raise ValueError(f"rows of 2 or 3 numbers, got an array of shape {rows.shape}")
+        if not np.isfinite(rows).all() or (np.abs(rows) > MAX_COORD).any():
+            raise ValueError(f"a number is NaN, infinite or beyond {MAX_COORD:.0f} (metres and seconds)")
+        if rows.shape[1] == 2:
+            if len(rows) > frames:
+                raise ValueError(f"{len(rows)} points for a motion of {frames} frames")
+            out = np.full((frames, 2), np.nan, np.float32)
+            out[: len(rows)] = rows - rows[0]
+            return out
+        t = rows[:, 0]
+        if t[0] != 0:
+            raise ValueError(f"the first waypoint is at {t[0]:g} s: a path starts with the motion, at 0 s")
+        if (np.diff(t) < 1 / fps - 1e-9).any():
+            k = int(np.argmax(np.diff(t) < 1 / fps - 1e-9))
+            raise ValueError(f"waypoints at {t[k]:g} and {t[k + 1]:g} s are less than a frame ({1 / fps:g} s) "
+                             "apart (times must increase)")
+        if t[-1] > (frames - 1) / fps + 1e-9:
+            raise ValueError(f"the path runs to {t[-1]:g} s; the motion ends at {(frames - 1) / fps:g} s "
+                             f"(frame {frames - 1})")
+        return path_points(rows - np.array([0.0, *rows[0, 1:]]), frames, fps)
+
+
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?(nan|inf|infinity)", re.IGNORECASE)
+
+
+def _number(text: str) -> float:
+    """A decimal number as written in a CSV (no '1_0', no words)."""
+    if not _NUMBER.fullmatch(text.strip()):
+        raise ValueError(f"{text.strip()!r} is not a number")
+    return float(text)
+
+
+def _numbers(value, where: str) -> list[float]:
+    """A JSON list of numbers (not booleans, strings or lists)."""
+    if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                              for v in value):
+        raise ValueError(f"{where} is not a list of numbers: {json.dumps(value)[:60]}")
+    return [float(v) for v in value]
+
+
+def _rows(path: Path) -> np.ndarray:
+    text = path.read_text(encoding="utf-8")
+    if path.suffix.lower() == ".json":
+        data = json.loads(text)
+        data = data["points"] if isinstance(data, dict) else data
+        if not isinstance(data, list):
+            raise ValueError("a list of rows, or {\"points\": rows}")
+        rows = [_numbers(r, f"row {i + 1}") for i, r in enumerate(data)]
+    else:
+        lines = [ln.split("#")[0].strip() for ln in text.splitlines()]
+        lines = [ln for ln in lines if ln]
+        if lines and not any(ch.isdigit() for ch in lines[0].replace(",", "")):
+            lines = lines[1:]  # a header of names
+        rows = [[_number(v) for v in ln.replace(";", ",").split(",")] for ln in lines]
+    if len({len(r) for r in rows}) > 1:
+        raise ValueError("rows of different lengths")
+    return np.asarray(rows, dtype=np.float64).reshape(len(rows), -1)
+
+
+def read_keyframe(spec: str, frames: int) -> tuple[int, np.ndarray]:
+    """``FRAME:FILE`` -> (frame, pose (22, 3), NaN = free). FILE: ``.npy`` of the 22 joints (22, 3), every one set;
+    or ``.json`` {"joint name or index": [x, y, z], ...} for some joints. Positions in the motion's own frame
+    (module docstring). A frame beyond the motion, a missing file or a bad pose is an error naming it."""
+    from lsgan.data.clip import load_npy
+    from lsgan.errors import reading
+
+    frame, sep, file = spec.partition(":")
+    if not sep or not re.fullmatch(r"\s*[0-9]+\s*", frame) or not file.strip():
+        raise ValueError(f"a keyframe is FRAME:FILE, a frame number and a file (e.g. 60:pose.npy), not {spec!r}")
+    f, path = int(frame), Path(file)
+    if not 0 <= f < frames:
+        raise ValueError(f"keyframe {f} ({spec}) is beyond the motion's {frames} frames (0..{frames - 1})")
+    if path.is_dir():
+        raise ValueError(f"{path}: a folder, not a keyframe file")
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such keyframe file")
+    with reading(path, "a keyframe: a .npy of 22 joints x 3, or a .json of joint names to [x, y, z]"):
+        if path.suffix.lower() == ".json":
+            pose = np.full((NUM_JOINTS, 3), np.nan)
+            data = json.loads(path.read_text(encoding="utf-8"))
+            if not isinstance(data, dict) or not data:
+                raise ValueError("an object of joint names to [x, y, z], with at least one joint")
+            for name, xyz in data.items():
+                values = _numbers(xyz, f"joint {name!r}")
+                if len(values) != 3:
+                    raise ValueError(f"joint {name!r} has {len(values)} coordinates, not 3")
+                pose[_joint(name)] = values
+        else:
+            pose = load_npy(path).astype(np.float64)
+            if pose.shape != (NUM_JOINTS, 3):
+                raise ValueError(f"a pose of this skeleton is ({NUM_JOINTS}, 3) joints (HumanML3D's order), "
+                                 f"not {pose.shape}")
+            if np.isnan(pose).any():
+                raise ValueError("a coordinate is NaN (a .npy pose sets every joint; a .json sets some)")
+        _check_coordinates(pose, "the pose")
+    return f, pose.astype(np.float32)
+
+
+def _joint(name: str) -> int:
+    if name.isdigit() and int(name) < NUM_JOINTS:
+        return int(name)
+    if name not in JOINT_NAMES:
+        raise ValueError(f"unknown joint {name!r}; the joints are {', '.join(JOINT_NAMES)}")
+    return JOINT_NAMES.index(name)
+
+
+def reachable_speed(feat_mean: np.ndarray, feat_std: np.ndarray, fps: float = FPS) -> float:
+    """The root's ground speed (m/s) a model's motions reach: its training data's root velocity channels at their
+    mean plus four standard deviations (the VAE's feature statistics)."""
+    m, sd = np.abs(np.asarray(feat_mean, np.float64)[1:3]), np.asarray(feat_std, np.float64)[1:3]
+    return float(np.linalg.norm(m + 4 * sd) * fps)
+
+
+def check_reach(c: Constraints, speed: float, skeleton: np.ndarray | None = None, fps: float = FPS) -> None:
+    """Refuse what no motion of the model can do: a root that would move faster than ``speed`` (m/s) between two
+    of its set ground points (the path's and keyframe roots', from the origin on frame 0), a whole keyframe pose
+    whose bones are not the model's ``skeleton`` (22 bone lengths, m): in all within a factor 1.5, each bone within
+    a factor 2 (3 cm of slack). Messages start with ``c.origin`` when it is set."""
+    from lsgan.data.skeleton import JOINT_NAMES as NAMES, bone_lengths
+
+    lead = f"{c.origin}: " if c.origin else ""
+    points = c.root_points()
+    if points is not None:
+        points = points.copy()
+        points[0] = 0.0  # every motion's root starts at the origin
+        on = np.nonzero(~np.isnan(points).any(-1))[0]
+        v = np.linalg.norm(np.diff(points[on], axis=0), axis=-1) / (np.diff(on) / fps)
+        k = int(np.argmax(v)) if len(v) else 0
+        if len(v) and v[k] > speed:
+            raise ValueError(f"{lead}the root would move at {v[k]:.1f} m/s between {on[k] / fps:.2f} and "
+                             f"{on[k + 1] / fps:.2f} s; this model's motions reach about {speed:.1f} m/s")
+    for f, pose in sorted(c.keyframes.items()):
+        if skeleton is None or np.isnan(pose).any():
+            continue
+        mine, ref = bone_lengths(pose[None].astype(np.float64))[0, 1:], np.asarray(skeleton, np.float64)[1:]
+        ratio = mine.sum() / ref.sum()
+        each = (mine + 0.03) / (ref + 0.03)
+        worst = int(np.argmax(np.abs(np.log(each))))
+        if not 1 / 1.5 <= ratio <= 1.5 or not 0.5 <= each[worst] <= 2:
+            raise ValueError(f"{lead}keyframe {f}: its bones are {ratio:.2f}x this model's skeleton in all, the bone "
+                             f"to {NAMES[worst + 1]} {mine[worst] / max(ref[worst], 1e-9):.2f}x: a pose of another "
+                             "skeleton or in other units (the joints are HumanML3D's 22, in metres)")
+
+
+CONTINUE_FRAMES = 5  # frames a continuation shares with the motion it continues: position, heading, pose, velocity
+CONTINUE_FADE = 10  # frames over which a continuation's remaining miss fades out after the shared frames
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a motion made in its own frame stands in another's: turned by ``yaw`` (rad) about +y, then moved by
+    (``x``, 0, ``z``) metres."""
+
+    yaw: float = 0.0
+    x: float = 0.0
+    z: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not all(np.isfinite([self.yaw, self.x, self.z])) or max(abs(self.x), abs(self.z)) > MAX_COORD:
+            raise ValueError(f"a placement is a finite turn and a shift within {MAX_COORD:.0f} m, not "
+                             f"({self.yaw}, {self.x}, {self.z})")
+
+    def _turn(self, v: np.ndarray, yaw: float) -> np.ndarray:
+        c, s = np.cos(yaw), np.sin(yaw)
+        out = np.array(v, dtype=np.float64)
+        out[..., 0], out[..., 2] = v[..., 0] * c + v[..., 2] * s, v[..., 2] * c - v[..., 0] * s
+        return out
+
+    def apply(self, joints: np.ndarray) -> np.ndarray:
+        """Joints (..., 3) of the motion's own frame in the other's."""
+        return (self._turn(np.asarray(joints, np.float64), self.yaw) + [self.x, 0.0, self.z]).astype(np.float32)
+
+    def undo(self, joints: np.ndarray) -> np.ndarray:
+        """Joints (..., 3) of the other's frame in the motion's own."""
+        return self._turn(np.asarray(joints, np.float64) - [self.x, 0.0, self.z], -self.yaw).astype(np.float32)
+
+    def describe(self) -> dict:
+        return {"yaw_rad": self.yaw, "x_m": self.x, "z_m": self.z}
+
+
+def frame_at(joints: np.ndarray, frame: int) -> Placement:
+    """The placement whose origin is ``joints[frame]``'s root on the ground, facing where that pose faces: a motion
+    made in its own frame and placed by it starts there."""
+    pose = np.asarray(joints[frame], np.float64)
+    return Placement(float(facing_yaw(pose)), float(pose[0, 0]), float(pose[0, 2]))
+
+
+def root_frame(features: np.ndarray, frame: int) -> Placement:
+    """The placement whose origin is the root of ``features`` (T, 263) on ``frame``, turned as its heading: a motion
+    made in its own frame and placed by it continues the features exactly as their concatenation would."""
+    angle, root = recover_root(np.asarray(features, np.float64))
+    return Placement(float(-2.0 * angle[frame]), float(root[frame, 0]), float(root[frame, 2]))
+
+
+def continuing(previous: np.ndarray, frames: int, overlap: int = CONTINUE_FRAMES,
+               frame: Placement | None = None, source: str = "") -> tuple[Constraints, Placement]:
+    """Constraints for a motion of ``frames`` frames whose first ``overlap`` frames are the last ones of
+    ``previous`` (T, 22, 3), and the placement that puts it where ``previous`` is (so it plays on from
+    ``previous``'s frame T - overlap). ``frame``: that placement, when known (:func:`root_frame`); by default the
+    pose's own (:func:`frame_at`). ``source``: what ``previous`` is, for messages."""
+    return _bridging(previous, None, frames, overlap, frame, source)
+
+
+def inbetween(a: np.ndarray, b: np.ndarray, frames: int, overlap: int = CONTINUE_FRAMES,
+              source: str = "") -> tuple[Constraints, Placement]:
+    """Constraints for a motion of ``frames`` frames that starts with the last ``overlap`` frames of ``a`` and
+    ends with the first ``overlap`` frames of ``b`` (both (T, 22, 3) in one frame), and its placement there."""
+    return _bridging(a, b, frames, overlap, None, source)
+
+
+def _bridging(a: np.ndarray, b: np.ndarray | None, frames: int, overlap: int, place: Placement | None,
+              source: str) -> tuple[Constraints, Placement]:
+    lead = f"{source}: " if source else ""
+    for name, m in (("the motion to continue", a), ("the motion to reach", b)):
+        if m is None:
+            continue
+        if len(m) < overlap:
+            raise ValueError(f"{lead}{name} has {len(m)} frames; it needs at least {overlap}")
+        if not np.isfinite(m).all() or (np.abs(m) > MAX_COORD).any():
+            raise ValueError(f"{lead}{name} holds a coordinate that is not finite or beyond {MAX_COORD:.0f} m")
+        if not has_facing(m[len(m) - overlap if b is None or m is a else 0]):
+            raise ValueError(f"{lead}{name} faces nowhere where it is joined (its hips and shoulders are on one "
+                             "vertical line)")
+    if frames < overlap * (1 if b is None else 2) + 1:
+        raise ValueError(f"a motion of {frames} frames cannot hold the {overlap} shared frames at each end")
+    place = place or frame_at(a, len(a) - overlap)
+    keys = {i: pose for i, pose in enumerate(place.undo(a[len(a) - overlap:]))}
+    if b is not None:
+        keys.update({frames - overlap + i: pose for i, pose in enumerate(place.undo(b[:overlap]))})
+    return Constraints(frames, keyframes=keys, fade=CONTINUE_FADE, origin=source), place
