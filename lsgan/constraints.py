@@ -152,24 +152,50 @@ def has_facing(pose: np.ndarray) -> bool:
 
 def _residual(on: np.ndarray, miss: np.ndarray, frames: int, fade: int) -> np.ndarray:
     """A miss (K, ...) known on the set frames ``on`` (K,) as a per-frame correction (frames, ...): zero on frame 0
-    (where every motion starts, at the origin facing +z, whatever is asked of it), linear between set frames, held
-    after the last; when the last two frames are both set (a path, a continuation), carried on at their rate of
-    change, fading out over ``fade`` frames (a raised cosine): the velocity does not jump where they end."""
-    miss = np.array(miss, np.float64)
+    (where every motion starts, at the origin facing +z, whatever is asked of it); between set frames a cubic
+    Hermite curve whose slope at a frame inside a run of set frames (a path, a continuation's shared frames) is the
+    run's own rate and elsewhere the chord's, so the velocity it gives does not jump where a run ends; after the
+    last set frame held, or, after a run, carried on at its rate and faded out over ``fade`` frames."""
+    tail = np.shape(miss)[1:]
+    miss = np.array(miss, np.float64).reshape(len(on), -1)
+    on = np.asarray(on)
     if on[0] == 0:
         miss[0] = 0.0
     else:
-        on, miss = np.concatenate([[0], on]), np.concatenate([np.zeros((1,) + miss.shape[1:]), miss])
-    t = np.arange(frames)
-    flat = miss.reshape(len(on), -1)
-    out = np.stack([np.interp(t, on, flat[:, k]) for k in range(flat.shape[1])], -1)
+        on, miss = np.concatenate([[0], on]), np.concatenate([np.zeros((1, miss.shape[1])), miss])
+    out = np.zeros((frames, miss.shape[1]))
+    slope = _slopes(on, miss)
+    for k in range(len(on) - 1):
+        a, b = on[k], on[k + 1]
+        h = b - a
+        u = (np.arange(a, b + 1) - a) / h  # (h + 1,)
+        h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+        out[a:b + 1] = (h00[:, None] * miss[k] + h10[:, None] * h * slope[k] + h01[:, None] * miss[k + 1]
+                        + h11[:, None] * h * slope[k + 1])
     last = on[-1]
-    if last + 1 < frames and len(on) > 1 and on[-2] == last - 1:  # a run of set frames: its rate is asked for
-        rate = out[last] - out[last - 1]  # (D,)
+    out[last:] = miss[-1]
+    if last + 1 < frames and len(on) > 1 and on[-2] == last - 1:  # after a run: its rate carried on, fading
         steps = np.arange(1, frames - last)
         carried = np.cumsum(np.where(steps < fade, 0.5 + 0.5 * np.cos(np.pi * steps / max(fade, 1)), 0.0))
-        out[last + 1:] += carried[:, None] * rate
-    return out.reshape((frames,) + miss.shape[1:])
+        out[last + 1:] += carried[:, None] * (miss[-1] - miss[-2])
+    return out.reshape((frames,) + tail)
+
+
+def _slopes(on: np.ndarray, miss: np.ndarray) -> np.ndarray:
+    """Per set frame, the miss's rate (per frame): a run's own difference where a neighbouring frame is set, else
+    the chord between the neighbouring set frames (the ends: the one chord they have)."""
+    out = np.zeros_like(miss)
+    for k in range(len(on)):
+        if k + 1 < len(on) and on[k + 1] == on[k] + 1 and k > 0 and on[k - 1] == on[k] - 1:
+            out[k] = (miss[k + 1] - miss[k - 1]) / 2
+        elif k > 0 and on[k - 1] == on[k] - 1:
+            out[k] = miss[k] - miss[k - 1]
+        elif k + 1 < len(on) and on[k + 1] == on[k] + 1:
+            out[k] = miss[k + 1] - miss[k]
+        else:
+            lo, hi = max(k - 1, 0), min(k + 1, len(on) - 1)
+            out[k] = (miss[hi] - miss[lo]) / max(on[hi] - on[lo], 1)
+    return out
 
 
 def close_root(features: np.ndarray, points: np.ndarray | None, yaws: np.ndarray | None = None,
@@ -348,9 +374,12 @@ def _numbers(value, where: str) -> list[float]:
 
 
 def _rows(path: Path) -> np.ndarray:
-    text = path.read_text(encoding="utf-8")
+    text = path.read_text(encoding="utf-8-sig")  # a byte-order mark, as spreadsheets write it, is not data
     if path.suffix.lower() == ".json":
-        data = json.loads(text)
+        try:
+            data = json.loads(text)
+        except RecursionError:
+            raise ValueError("JSON nested too deeply") from None
         data = data["points"] if isinstance(data, dict) else data
         if not isinstance(data, list):
             raise ValueError("a list of rows, or {\"points\": rows}")
@@ -361,6 +390,8 @@ def _rows(path: Path) -> np.ndarray:
         if lines and not any(ch.isdigit() for ch in lines[0].replace(",", "")):
             lines = lines[1:]  # a header of names
         rows = [[_number(v) for v in ln.replace(";", ",").split(",")] for ln in lines]
+    if not rows:
+        raise ValueError("no points")
     if len({len(r) for r in rows}) > 1:
         raise ValueError("rows of different lengths")
     return np.asarray(rows, dtype=np.float64).reshape(len(rows), -1)
@@ -386,7 +417,10 @@ def read_keyframe(spec: str, frames: int) -> tuple[int, np.ndarray]:
     with reading(path, "a keyframe: a .npy of 22 joints x 3, or a .json of joint names to [x, y, z]"):
         if path.suffix.lower() == ".json":
             pose = np.full((NUM_JOINTS, 3), np.nan)
-            data = json.loads(path.read_text(encoding="utf-8"))
+            try:
+                data = json.loads(path.read_text(encoding="utf-8-sig"))
+            except RecursionError:
+                raise ValueError("JSON nested too deeply") from None
             if not isinstance(data, dict) or not data:
                 raise ValueError("an object of joint names to [x, y, z], with at least one joint")
             for name, xyz in data.items():
@@ -430,16 +464,6 @@ def check_reach(c: Constraints, speed: float, skeleton: np.ndarray | None = None
     from lsgan.data.skeleton import JOINT_NAMES as NAMES, bone_lengths
 
     lead = f"{c.origin}: " if c.origin else ""
-    points = c.root_points()
-    if points is not None:
-        points = points.copy()
-        points[0] = 0.0  # every motion's root starts at the origin
-        on = np.nonzero(~np.isnan(points).any(-1))[0]
-        v = np.linalg.norm(np.diff(points[on], axis=0), axis=-1) / (np.diff(on) / fps)
-        k = int(np.argmax(v)) if len(v) else 0
-        if len(v) and v[k] > speed:
-            raise ValueError(f"{lead}the root would move at {v[k]:.1f} m/s between {on[k] / fps:.2f} and "
-                             f"{on[k + 1] / fps:.2f} s; this model's motions stay under {speed:.1f} m/s")
     for f, pose in sorted(c.keyframes.items()):
         if skeleton is None or np.isnan(pose).any():
             continue
@@ -451,6 +475,26 @@ def check_reach(c: Constraints, speed: float, skeleton: np.ndarray | None = None
             raise ValueError(f"{lead}keyframe {f}: its bones are {ratio:.2f}x this model's skeleton in all, the bone "
                              f"to {NAMES[worst + 1]} {mine[worst] / max(ref[worst], 1e-9):.2f}x: a pose of another "
                              "skeleton or in other units (the joints are HumanML3D's 22, in metres)")
+    points = c.root_points()
+    if points is not None:
+        points = points.copy()
+        points[0] = 0.0  # every motion's root starts at the origin
+        on = np.nonzero(~np.isnan(points).any(-1))[0]
+        v = np.linalg.norm(np.diff(points[on], axis=0), axis=-1) / (np.diff(on) / fps)
+        k = int(np.argmax(v)) if len(v) else 0
+        if len(v) and v[k] > speed:
+            a, b = (_root_source(c, int(f)) for f in on[k:k + 2])
+            raise ValueError(f"{lead}the root would move at {v[k]:.1f} m/s from {a} at {on[k] / fps:.2f} s to {b} at "
+                             f"{on[k + 1] / fps:.2f} s; this model's motions stay under {speed:.1f} m/s")
+
+
+def _root_source(c: Constraints, frame: int) -> str:
+    """What sets the root's ground point on ``frame``, for messages."""
+    if frame in c.keyframes and not np.isnan(c.keyframes[frame][0, [0, 2]]).any():
+        return f"keyframe {frame}'s root"
+    if c.path is not None and not np.isnan(c.path[frame]).any():
+        return "the path"
+    return "the start (the origin)"
 
 
 CONTINUE_FRAMES = 5  # frames a continuation shares with the motion it continues: position, heading, pose, velocity

@@ -30,8 +30,8 @@ from lsgan.generation import (  # noqa: F401
     write_generation,
 )
 from lsgan.generation import draw_noise as numpy_noise
-from lsgan.constraints import Constraints, Placement, check_reach, close_root, measure, reachable_speed, warp_poses
-from lsgan.constraints import WARP_FRAMES
+from lsgan.constraints import (WARP_FRAMES, Constraints, Placement, check_reach, close_root, measure, reachable_speed,
+                               warp_poses)
 from lsgan.control import ControlSettings
 from lsgan.threads import LARGE_BATCH, ThreadPolicy
 
@@ -215,8 +215,9 @@ def run_models(loaded: Loaded, requests: list[Request], nums: list[int], noise: 
     pass ``generate`` and ``lsgan serve`` share. Returns (features, timings in s, sampling options).
 
     ``threads``: a caller's long-lived policy (a server's: it measures the machine's load across passes), updated
-    here; by default one made for this pass and undone after it. ``constraints``: one per motion (lsgan.control),
-    met by optimising the latents (:func:`steer`) and then, for a path, by closing the root onto it exactly.
+    here; by default one made for this pass and undone after it. ``constraints``: one per motion
+    (:mod:`lsgan.constraints`), approached by optimising the latents (:func:`steer`), then met exactly by closing
+    the root onto them and warping whole poses in (docs/control.md).
     """
     timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
     dev = loaded.device
@@ -256,8 +257,8 @@ def check_constraints(vae_meta: dict, c: Constraints, request: Request) -> Const
 def steer(loaded: Loaded, z: torch.Tensor, noise: torch.Tensor, cond: torch.Tensor, constraints: list[Constraints],
           settings: ControlSettings, batch_size: int, timings: dict[str, float]) -> torch.Tensor:
     """The latents (N, Z) moved to meet one constraint set per motion (:func:`lsgan.control.control`): a GAN's
-    through its generator's noise, then the latent; a diffusion's sampled latent directly (no noise steps: its
-    DDIM chain is too long to differentiate through)."""
+    through its generator's noise (then the latent, if the settings ask); a diffusion's sampled latent directly,
+    for as many steps (its DDIM chain is too long to differentiate through)."""
     from lsgan.control import control
 
     dev, extra, gan = loaded.device, loaded.meta["extra"], loaded.meta["kind"] == "gan"
@@ -265,8 +266,9 @@ def steer(loaded: Loaded, z: torch.Tensor, noise: torch.Tensor, cond: torch.Tens
              "latent_std": torch.as_tensor(np.asarray(extra["latent_std"], np.float32), device=dev),
              "feat_mean": torch.as_tensor(np.asarray(loaded.vae_meta["mean"], np.float32), device=dev),
              "feat_std": torch.as_tensor(np.asarray(loaded.vae_meta["std"], np.float32), device=dev)}
-    if not gan:
-        settings = dataclasses.replace(settings, noise_steps=0)
+    if not gan:  # the noise steps become latent steps
+        settings = dataclasses.replace(settings, noise_steps=0,
+                                       latent_steps=settings.latent_steps or settings.noise_steps)
     t0 = time.perf_counter()
     out = []
     for b in range(0, len(z), batch_size):

@@ -219,7 +219,9 @@ def continued_motion(loaded, segments: list[Segment], *, seed: int, source: str 
     timeline = {
         "source": str(source) if source else "inline",
         "join": f"continue: each segment starts with the motion so far's last {k} frames (lsgan.constraints."
-                "continuing), its features in place of them; root integrated once (lsgan.timeline)",
+                "continuing), its features in place of them; root integrated once (lsgan.timeline). A segment's "
+                "control figures are measured on it as generated, before the take is made rigid as one (they differ "
+                "by millimetres)",
         "segments": [{"text": s.text, "frames": s.frames, "start": int(a), "seed": seed + i,
                       **({"control": r} if r is not None else {})}
                      for i, (s, a, r) in enumerate(zip(segments, starts, reports))],

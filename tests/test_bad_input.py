@@ -557,12 +557,12 @@ CASES = [
          "path.csv: not a path: rows of (time s, x, z) waypoints or (x, z) per frame, as CSV or JSON (ValueError: a "
          "number is NaN, infinite or beyond 10000"),
     Case("path-too-fast", lambda w, p: path_args(w, p, "0,0,0\n0.5,30,0\n"), 1,
-         "path.csv: the root would move at 60.0 m/s between"),
+         "path.csv: the root would move at 60.0 m/s from the path at"),
     Case("path-too-fast-force-keeps-earlier-run", lambda w, p: earlier_run(w, p) + ["--path", written(
         w / "fast.csv", b"0,0,0\n0.5,30,0\n"), "--force"], 1, "the root would move at 60.0 m/s"),
     Case("path-first-step-too-fast", lambda w, p: path_args(w, p, "0,0\n0,0\n", "p.csv") + [
         "--keyframe", "3:" + str(written(w / "k.json", PELVIS_FAR))], 1,
-         "k.json: the root would move at 500.0 m/s between 0.05 and 0.15 s"),
+         "k.json: the root would move at 500.0 m/s from the path at 0.05 s to keyframe 3's root at 0.15 s"),
     Case("path-times-decrease", lambda w, p: path_args(w, p, "0,0,0\n1,1,0\n0.5,2,0\n"), 1,
          "waypoints at 1 and 0.5 s are less than a frame (0.05 s) apart"),
     Case("path-waypoints-within-a-frame", lambda w, p: path_args(w, p, "0,0,0\n0.04,5,5\n"), 1,
@@ -611,6 +611,13 @@ CASES = [
          "unknown joint 'left_hand'"),
     Case("keyframe-pickle", lambda w, p: keyframe_args(w, p, 3, np.array([{"a": 1}], dtype=object)), 1,
          "pose.npy"),
+    Case("continue-with-fix-feet", lambda w, p: generate_args(p, w / "out", "--fix-feet", "--continue", npy_file(
+        w, "m.npy", np.stack([standing_pose()] * 8))), 2, "--fix-feet would move the feet of the frames"),
+    Case("path-empty", lambda w, p: path_args(w, p, "t,x,z\n"), 1, "path.csv: not a path"),
+    Case("path-deep-json", lambda w, p: path_args(w, p, "[" * 100000 + "]" * 100000, "path.json"), 1,
+         "JSON nested too deeply"),
+    Case("keyframe-centimetres-far-from-the-root", lambda w, p: keyframe_args(w, p, 10, standing_pose() * 100 + [
+        50, 0, 50]), 1, "keyframe 10: its bones are"),
     Case("continue-not-npy", lambda w, p: generate_args(p, w / "out", "--continue", text_file(w, "m.txt")), 1,
          "m.txt: not a .npy array file"),
     Case("continue-too-short", lambda w, p: generate_args(p, w / "out", "--continue", npy_file(

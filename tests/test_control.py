@@ -149,9 +149,9 @@ def test_a_keyframe_file_sets_the_joints_it_names(tmp_path):
     (lambda: path_points(np.array([[1.0, 0, 0], [0.5, 1, 1]]), 40), "waypoint times must increase"),
     (lambda: path_points(np.array([[0.0, np.nan, 0]]), 40), "finite (time, x, z)"),
     (lambda: check_reach(Constraints(40, path=path_points(np.array([[0, 0, 0], [1, 9, 0]]), 40)), 5.0),
-     "the root would move at 9.0 m/s between 0.* s; this model's motions stay under 5.0 m/s"),
+     "the root would move at 9.0 m/s from the path at"),
     (lambda: check_reach(Constraints(40, path=np.vstack([[np.nan, np.nan], [3.0, 0]] + [[np.nan] * 2] * 38)), 5.0),
-     "the root would move at 60.0 m/s between 0.00 and 0.05 s"),  # from the origin, where every motion starts
+     "the root would move at 60.0 m/s from the start (the origin) at 0.00 s to the path at 0.05 s"),
     (lambda: Constraints(40, keyframes={0: np.vstack([[1.0, 0.9, 1.0]] + [[np.nan] * 3] * 21)}),
      "keyframe 0's root on frame 0 is the motion's start"),
     (lambda: Constraints(40, keyframes={3: np.full((22, 3), np.nan)}), "keyframe 3 sets no joint"),
@@ -162,7 +162,7 @@ def test_a_keyframe_file_sets_the_joints_it_names(tmp_path):
                          np.full(22, 0.1)), "keyframe 5: its bones are"),
 ])
 def test_bad_constraints_are_refused_with_what_is_wrong(make, phrase):
-    with pytest.raises(ValueError, match=phrase.replace("(", r"\(").replace(")", r"\)").replace(".*", "[0-9. and]*")):
+    with pytest.raises(ValueError, match=phrase.replace("(", r"\(").replace(")", r"\)")):
         make()
 
 
@@ -280,3 +280,17 @@ def test_the_seam_velocity_is_the_change_of_step_where_whole_keyframes_end():
     stop = walk.copy()
     stop[5:] = stop[4]  # stands still from frame 5: its step changes by 1 m/s
     assert np.isclose(measure(stop, c)["seam_velocity_m_s"]["max"], 1.0, atol=1e-4)
+
+
+def test_between_two_runs_of_set_frames_the_root_velocity_has_no_jump():
+    """An in-between's shape: the root set on frames 0-4 and 30-34, walking at 1 m/s (the second run 1.5 m to the
+    side), over a decoded root that stands: every set point is met, and the step changes smoothly everywhere."""
+    feats = np.zeros((40, 263), np.float32)
+    path = np.full((40, 2), np.nan, np.float32)
+    path[:5] = np.stack([np.zeros(5), np.arange(5) * 0.05], -1)
+    path[30:35] = np.stack([np.full(5, 1.5), 1.5 + np.arange(5) * 0.05], -1)
+    _, root = recover_root(close_root(feats, path, fade=10).astype(np.float64))
+    on = ~np.isnan(path).any(-1)
+    assert np.abs(root[on][:, [0, 2]] - path[on]).max() < 1e-5
+    step = np.diff(root[:, [0, 2]], axis=0)  # (39, 2)
+    assert np.linalg.norm(np.diff(step[:34], axis=0), axis=-1).max() < 0.03  # no frame-to-frame jump

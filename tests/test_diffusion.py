@@ -403,6 +403,28 @@ def test_generate_api_with_a_diffusion_checkpoint(setup: Path) -> None:
         load_generator(setup / "vae")
 
 
+def test_a_diffusion_model_is_steered_through_its_latent(setup: Path) -> None:
+    """Control with a diffusion checkpoint: its sampled latent is optimised (no noise steps), the root then closed
+    onto the path, and the keyframe's miss shrinks against the unsteered motion's."""
+    from lsgan.constraints import Constraints, path_points
+    from lsgan.control import ControlSettings
+    from lsgan.generate import Request, generate_loaded, load_models
+
+    loaded = load_models(setup / "diff", setup / "vae", device="cpu")
+    req = [Request(text=PROMPTS[0], frames=40)]
+    free = generate_loaded(loaded, req, seed=1, steps=2).motions[0].joints
+    wrist = np.full((22, 3), np.nan, np.float32)
+    wrist[21] = free[30, 21] + [0.3, 0.2, 0.0]
+    settings = ControlSettings(20, lr=0.1)
+    g = generate_loaded(loaded, req, seed=1, steps=2, constraints=Constraints(40, keyframes={30: wrist}),
+                        control_settings=settings)
+    assert g.timings_s["control"] > 0 and g.control["settings"]["noise_steps"] == 20
+    assert g.motions[0].control["keyframes_m"]["max"] < 0.8 * np.linalg.norm(free[30, 21] - wrist[21])
+    path = Constraints(40, path=path_points(np.array([[0, 0, 0], [1.9, 0.5, 1.0]]), 40))
+    g = generate_loaded(loaded, req, seed=1, steps=2, constraints=path, control_settings=settings)
+    assert g.motions[0].control["path_m"]["max"] < 1e-3
+
+
 def test_a_stale_cache_is_refused_by_the_cli(setup: Path, tmp_path: Path) -> None:
     other = random_vae(tmp_path / "vae2", 1)
     stale = lsgan("train-diffusion", "--cache", "cache.h5", "--recipe", "tiny.yaml", "--vae", other,

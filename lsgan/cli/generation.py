@@ -93,6 +93,9 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
     if controlled and (timeline is not None or runtime == "onnx"):
         raise click.UsageError("--path, --keyframe, --continue and --inbetween work with --runtime torch and without "
                                "--timeline (control optimises through the models: onnxruntime has no gradients)")
+    if bridged and fix_feet:
+        raise click.UsageError("--fix-feet would move the feet of the frames --continue and --inbetween share with "
+                               "the motions they join: give one or the other")
     if bridged and (continue_from is not None) + bool(inbetween) + (path_file is not None) + bool(keyframes) > 1:
         raise click.UsageError("--continue and --inbetween set every constraint themselves: give one of them, "
                                "without --path or --keyframe")
