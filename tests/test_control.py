@@ -294,3 +294,21 @@ def test_between_two_runs_of_set_frames_the_root_velocity_has_no_jump():
     assert np.abs(root[on][:, [0, 2]] - path[on]).max() < 1e-5
     step = np.diff(root[:, [0, 2]], axis=0)  # (39, 2)
     assert np.linalg.norm(np.diff(step[:34], axis=0), axis=-1).max() < 0.03  # no frame-to-frame jump
+
+
+def test_an_action_model_takes_the_same_constraints(serve_models: Path):
+    """An action-conditioned GAN (the tiny pipeline's act-gan): a path is met exactly and a keyframe's miss shrinks
+    (with latent steps: this tiny GAN's motions hardly depend on its noise), through the same generate call as
+    text."""
+    act = load_models(serve_models / "act-gan", serve_models / "vae", device="cpu")
+    action = act.meta["extra"]["action_names"][0]
+    req = [Request(action=action, frames=40)]
+    free = generate_loaded(act, req, seed=2).motions[0].joints
+    wrist = np.full((22, 3), np.nan, np.float32)
+    wrist[21] = free[20, 21] + [0.2, 0.1, 0.0]
+    g = generate_loaded(act, req, seed=2, constraints=Constraints(40, keyframes={20: wrist}),
+                        control_settings=ControlSettings(10, 40, lr=0.1))  # the latent too: its noise does little
+    assert g.motions[0].control["keyframes_m"]["max"] < 0.8 * np.linalg.norm(free[20, 21] - wrist[21])
+    path = Constraints(40, path=path_points(np.array([[0, 0, 0], [1.9, -0.4, 0.9]]), 40))
+    g = generate_loaded(act, req, seed=2, constraints=path, control_settings=ControlSettings(5))
+    assert g.motions[0].control["path_m"]["max"] < 1e-3 and g.motions[0].request.action == action
