@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lsgan.data.features import RIC, ROOT_Y, _qrot_yaw, recover_root
+from lsgan.data.features import RIC, ROOT_Y, _qrot_yaw, _xp, recover_root
 from lsgan.data.skeleton import FACE_JOINTS, FPS, JOINT_NAMES, NUM_JOINTS
 
 START_TOLERANCE = 1e-3  # m: a path's or keyframe root's point on frame 0 is the origin within this
@@ -132,22 +132,31 @@ def path_points(waypoints: np.ndarray, frames: int, fps: float = 20.0) -> np.nda
     return out.astype(np.float32)
 
 
-def facing_yaw(joints: np.ndarray) -> np.ndarray:
-    """The facing of poses (..., 22, 3) as a yaw angle (rad) about +y from +z: the body's forward direction, up x
-    the hips' and shoulders' across (as HumanML3D turns each clip to face +z); 0 for a pose without one."""
+def _across(j):
+    """The hips' and shoulders' across vector (..., 3) of poses (..., 22, 3), as HumanML3D takes it."""
     a, b, c, d = FACE_JOINTS
-    j = np.asarray(joints, np.float64)
-    across = (j[..., a, :] - j[..., b, :]) + (j[..., c, :] - j[..., d, :])
+    return (j[..., a, :] - j[..., b, :]) + (j[..., c, :] - j[..., d, :])
+
+
+def facing_yaw(joints):
+    """The facing of poses (..., 22, 3), numpy arrays or torch tensors, as a yaw angle (rad) about +y from +z: the
+    body's forward direction, up x the across (as HumanML3D turns each clip to face +z); 0 for a pose without one."""
+    j = np.asarray(joints, np.float64) if isinstance(joints, np.ndarray) else joints
+    across = _across(j)
     # forward = (0, 1, 0) x across = (across_z, 0, -across_x); + 0.0 turns -0.0 into 0.0 (atan2(0, -0.0) is pi)
-    return np.arctan2(across[..., 2] + 0.0, -across[..., 0] + 0.0)
+    return _xp(j).atan2(across[..., 2] + 0.0, -across[..., 0] + 0.0)
 
 
 def has_facing(pose: np.ndarray) -> bool:
-    """Whether a pose (22, 3) faces somewhere: its hips' and shoulders' across has a horizontal part (1 mm)."""
-    a, b, c, d = FACE_JOINTS
-    j = np.asarray(pose, np.float64)
-    across = (j[a] - j[b]) + (j[c] - j[d])
+    """Whether a pose (22, 3) faces somewhere: its across has a horizontal part (1 mm)."""
+    across = _across(np.asarray(pose, np.float64))
     return bool(np.hypot(across[0], across[2]) > 1e-3)
+
+
+def turn(v, yaw):
+    """Points (..., 3), numpy or torch, turned by ``yaw`` (rad, broadcast over the points) about +y: a pose facing
+    yaw 0 then faces ``yaw``. The yaw quaternion of lsgan.data.features turns by twice its angle."""
+    return _qrot_yaw(yaw / 2, v, inverse=False)
 
 
 def _residual(on: np.ndarray, miss: np.ndarray, frames: int, fade: int) -> np.ndarray:
@@ -515,19 +524,15 @@ class Placement:
             raise ValueError(f"a placement is a finite turn and a shift within {MAX_COORD:.0f} m, not "
                              f"({self.yaw}, {self.x}, {self.z})")
 
-    def _turn(self, v: np.ndarray, yaw: float) -> np.ndarray:
-        c, s = np.cos(yaw), np.sin(yaw)
-        out = np.array(v, dtype=np.float64)
-        out[..., 0], out[..., 2] = v[..., 0] * c + v[..., 2] * s, v[..., 2] * c - v[..., 0] * s
-        return out
-
     def apply(self, joints: np.ndarray) -> np.ndarray:
         """Joints (..., 3) of the motion's own frame in the other's."""
-        return (self._turn(np.asarray(joints, np.float64), self.yaw) + [self.x, 0.0, self.z]).astype(np.float32)
+        j = np.asarray(joints, np.float64)
+        return (turn(j, np.full(j.shape[:-1], self.yaw)) + [self.x, 0.0, self.z]).astype(np.float32)
 
     def undo(self, joints: np.ndarray) -> np.ndarray:
         """Joints (..., 3) of the other's frame in the motion's own."""
-        return self._turn(np.asarray(joints, np.float64) - [self.x, 0.0, self.z], -self.yaw).astype(np.float32)
+        j = np.asarray(joints, np.float64) - [self.x, 0.0, self.z]
+        return turn(j, np.full(j.shape[:-1], -self.yaw)).astype(np.float32)
 
     def describe(self) -> dict:
         return {"yaw_rad": self.yaw, "x_m": self.x, "z_m": self.z}

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lsgan.constraints import Constraints
+from lsgan.constraints import Constraints, facing_yaw, turn
 from lsgan.data.features import recover_from_ric
-from lsgan.data.skeleton import FACE_JOINTS, FPS, NUM_JOINTS
+from lsgan.data.skeleton import FPS, NUM_JOINTS
 
 
 @dataclass
@@ -76,13 +76,8 @@ def _joint_errors(joints: torch.Tensor, target: torch.Tensor, weight: torch.Tens
 def _facing_frame(poses: torch.Tensor) -> torch.Tensor:
     """Poses (K, 22, 3) with the root over the origin and the facing turned onto +z (lsgan.constraints.facing_yaw's
     facing): what of a whole-pose keyframe is left to meet once the root is closed onto it."""
-    a, b, c, d = FACE_JOINTS
-    across = (poses[:, a] - poses[:, b]) + (poses[:, c] - poses[:, d])  # (K, 3)
-    yaw = torch.atan2(across[:, 2] + 0.0, -across[:, 0] + 0.0)[:, None]  # (K, 1); + 0.0: atan2(0, -0.0) is pi
-    x = poses[..., 0] - poses[:, :1, 0]
-    z = poses[..., 2] - poses[:, :1, 2]
-    cos, sin = torch.cos(yaw), torch.sin(yaw)
-    return torch.stack([x * cos - z * sin, poses[..., 1], z * cos + x * sin], -1)
+    shifted = poses - poses[:, :1] * poses.new_tensor([1.0, 0.0, 1.0])
+    return turn(shifted, -facing_yaw(poses)[:, None])
 
 
 def _whole_poses(constraints: list[Constraints], dev) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

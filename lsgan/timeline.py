@@ -146,9 +146,7 @@ def join_generation(result: Generation, segments: list[Segment], overlap: int, s
     """``result`` (one motion per segment, in order) as one joined motion, with the timeline for the manifest."""
     frames = [s.frames for s in segments]
     features = join_features([m.features for m in result.motions], frames, overlap)
-    starts = np.concatenate([[0], np.cumsum(frames)[:-1]]).tolist()
-    text = "; ".join(s.text for s in segments)
-    motion = decoded_motion(Request(text=text, frames=len(features)), 0, features, result.fix_feet)
+    motion, starts = take_motion(segments, features, result.fix_feet)
     timeline = {
         "source": str(source) if source else "inline",
         "overlap": overlap,
@@ -157,6 +155,14 @@ def join_generation(result: Generation, segments: list[Segment], overlap: int, s
                      for s, a, m in zip(segments, starts, result.motions)],
     }
     return dataclasses.replace(result, motions=[motion], timeline=timeline)
+
+
+def take_motion(segments: list[Segment], features: np.ndarray, fix_feet: bool):
+    """The take's one motion of record from its joined features (joints recovered and made rigid once), and each
+    segment's first frame in it."""
+    text = "; ".join(s.text for s in segments)
+    motion = decoded_motion(Request(text=text, frames=len(features)), 0, features, fix_feet)
+    return motion, np.concatenate([[0], np.cumsum([s.frames for s in segments])[:-1]]).tolist()
 
 
 def timeline_motion(segments: list[Segment], overlap: int, run: Callable[[list[Request]], Generation],
@@ -213,9 +219,7 @@ def continued_motion(loaded, segments: list[Segment], *, seed: int, source: str 
         feats = np.concatenate([feats[: len(feats) - k], part.motions[0].features])
         reports.append(part.motions[0].control)
         timings = {name: timings.get(name, 0.0) + t for name, t in part.timings_s.items()}
-    text = "; ".join(s.text for s in segments)
-    motion = decoded_motion(Request(text=text, frames=len(feats)), 0, feats, fix_feet)
-    starts = np.concatenate([[0], np.cumsum([s.frames for s in segments])[:-1]]).tolist()
+    motion, starts = take_motion(segments, feats, fix_feet)
     timeline = {
         "source": str(source) if source else "inline",
         "join": f"continue: each segment starts with the motion so far's last {k} frames (lsgan.constraints."
