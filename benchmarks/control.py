@@ -7,6 +7,11 @@ captioned) are drawn; each caption is generated at its window's length from the 
 - ``free``: no constraint (the unconstrained model, the reference for quality and time);
 - ``path``: the real window's root path on the ground, every frame (OmniControl's dense pelvis control);
 - ``keyframes``: the real window's whole pose (22 joints) at three frames: a third, two thirds, the last;
+- ``joints``: some joints of the real window (the head and both wrists) at a third and two thirds: keyframes that
+  set some joints, completed by inverse kinematics (lsgan.motion.ik);
+- ``path, facing``: the real root path with ``--facing`` (the body turned along the path's direction of travel);
+- ``path, not steered`` and ``keyframes, not steered``: those constraints met without the optimisation (0 steps),
+  which is what the ONNX route does (onnxruntime has no gradients);
 - ``continue``: a continuation of the window's first half (``generate --continue``), placed where it ends.
 
 Constraint errors (on the motion of record: the rigid joints every output shows): for the path, OmniControl's
@@ -33,6 +38,7 @@ import numpy as np
 import torch
 
 from lsgan.constraints import CONTINUE_FRAMES, Constraints, Placement, continuing, frame_at, measure
+from lsgan.control import ControlSettings
 from lsgan.data.features import recover_from_ric
 from lsgan.eval import metrics as M
 from lsgan.eval.evaluate import _draw, _windows
@@ -42,16 +48,24 @@ from lsgan.models.evaluator import load_evaluator
 from lsgan.motion.quality import quality_metrics
 
 FAR = 0.5  # m: OmniControl's threshold for a trajectory or location failure
+SOME_JOINTS = (15, 20, 21)  # the ``joints`` row's: head, left wrist, right wrist
+UNSTEERED = ControlSettings(noise_steps=0, latent_steps=0)
+KINDS = ("free", "path", "path, facing", "keyframes", "joints", "path, not steered", "keyframes, not steered")
 
 
 def constraint_sets(joints: list[np.ndarray]) -> dict[str, list[Constraints]]:
     """Per kind, one constraint set per real window (T, 22, 3)."""
-    out: dict[str, list[Constraints]] = {"free": [], "path": [], "keyframes": []}
+    out: dict[str, list[Constraints]] = {kind: [] for kind in KINDS}
     for j in joints:
         T = len(j)
+        some = np.full_like(j, np.nan)
+        some[:, SOME_JOINTS] = j[:, SOME_JOINTS]
         out["free"].append(Constraints(T))
         out["path"].append(Constraints(T, path=j[:, 0, [0, 2]]))
         out["keyframes"].append(Constraints(T, keyframes={f: j[f] for f in (T // 3, 2 * T // 3, T - 1)}))
+        out["joints"].append(Constraints(T, keyframes={f: some[f] for f in (T // 3, 2 * T // 3)}))
+        out["path, facing"].append(Constraints(T, path=j[:, 0, [0, 2]], facing=True))
+    out["path, not steered"], out["keyframes, not steered"] = out["path"], out["keyframes"]
     return out
 
 
@@ -62,10 +76,11 @@ def continuation_sets(joints: list[np.ndarray]) -> tuple[list[np.ndarray], list[
     return previous, [c for c, _ in made], [p for _, p in made]
 
 
-def run_kind(loaded, requests, noise, constraints, batch: int, placements=None) -> tuple[list, float]:
+def run_kind(loaded, requests, noise, constraints, batch: int, placements=None,
+             settings: ControlSettings | None = None) -> tuple[list, float]:
     """Motions of record for the requests (one each) under the constraints, placed; control seconds per motion."""
     feats, timings, _ = run_models(loaded, requests, [1] * len(requests), noise, batch_size=batch,
-                                   constraints=None if constraints is None else constraints)
+                                   constraints=None if constraints is None else constraints, control_settings=settings)
     motions = [decoded_motion(r, 0, f) for r, f in zip(requests, feats)]
     for m, p in zip(motions, placements or []):
         m.joints = p.apply(m.joints)
@@ -96,13 +111,17 @@ def real_velocity_jump(joints: list[np.ndarray]) -> float:
 
 
 def errors(kind: str, motions, constraints) -> dict:
+    kind = kind.removesuffix(", not steered").removesuffix(", facing")
     if kind == "path":
         d = [np.linalg.norm(m.joints[:, 0][:, [0, 2]] - c.path, axis=-1) for m, c in zip(motions, constraints)]
-        return {"trajectory_error": float(np.mean([x.max() > FAR for x in d])),
+        facing = [measure(m.joints, c).get("facing_deg") for m, c in zip(motions, constraints)]
+        facing = [f for f in facing if f]
+        return {**({"facing_mean_deg": float(np.mean([f["mean"] for f in facing])),
+                    "facing_max_deg": float(max(f["max"] for f in facing))} if facing else {}),"trajectory_error": float(np.mean([x.max() > FAR for x in d])),
                 "location_error": float(np.mean(np.concatenate(d) > FAR)),
                 "average_error_cm": float(np.mean(np.concatenate(d)) * 100),
                 "max_error_cm": float(max(x.max() for x in d) * 100)}
-    if kind == "keyframes":
+    if kind in ("keyframes", "joints"):
         got = [measure(m.joints, c)["keyframes_m"] for m, c in zip(motions, constraints)]
         return {"keyframe_mean_cm": float(np.mean([g["mean"] for g in got]) * 100),
                 "keyframe_max_cm": float(max(g["max"] for g in got) * 100),
@@ -119,11 +138,11 @@ def quality(ev, feats, joints, captions, real_emb, seed: int) -> dict:
             "skating": q["foot_skating_ratio"], "jerk": q["jerk_m_s3"], "penetration_m": q["penetration_m"]}
 
 
-def single_times(loaded, requests, noise, constraints, n: int) -> float:
+def single_times(loaded, requests, noise, constraints, n: int, settings: ControlSettings | None = None) -> float:
     """Seconds of control per motion, one motion at a time."""
     spent = []
     for i in range(min(n, len(requests))):
-        _, t = run_kind(loaded, requests[i:i + 1], noise[i:i + 1], constraints[i:i + 1], 1)
+        _, t = run_kind(loaded, requests[i:i + 1], noise[i:i + 1], constraints[i:i + 1], 1, settings=settings)
         spent.append(t)
     return float(np.median(spent))
 
@@ -163,8 +182,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--split", default="test", help="the windows' split (a small shard's test split may hold fewer "
                     "than --motions)")
+    ap.add_argument("--kinds", default=",".join(KINDS), help=f"rows to run, of {', '.join(KINDS)} (free is always "
+                    "run: the reference)")
+    ap.add_argument("--no-continue", action="store_true", help="skip the continuation row and the end-to-end timing")
     ap.add_argument("--json")
     args = ap.parse_args()
+    kinds = ["free"] + [k for k in args.kinds.split(",") if k != "free"]
+    if set(kinds) - set(KINDS):
+        ap.error(f"unknown kinds {sorted(set(kinds) - set(KINDS))}")
     torch.set_num_threads(int(os.environ.get("LSGAN_THREADS", "2")))
     loaded = load_models(args.gan, args.vae, device="cpu")
     ev = load_evaluator(args.evaluator, device="cpu")
@@ -181,19 +206,23 @@ def main() -> None:
     sets = constraint_sets(joints)
     report = {"machine": platform.machine(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
               "load_before": os.getloadavg(), "motions": len(requests), "gan": args.gan, "vae": args.vae, "rows": {}}
-    for kind, cons in sets.items():
+    for kind in kinds:
+        cons, settings = sets[kind], UNSTEERED if kind.endswith("not steered") else None
         t0 = time.perf_counter()
-        motions, per_motion = run_kind(loaded, requests, noise, None if kind == "free" else cons, 32)
+        motions, per_motion = run_kind(loaded, requests, noise, None if kind == "free" else cons, 32,
+                                       settings=settings)
         row = {**errors(kind, motions, cons),
                **quality(ev, [m.features for m in motions], [m.joints for m in motions], captions, real_emb, args.seed),
                "control_s_per_motion_batch32": per_motion, "wall_s": time.perf_counter() - t0}
         if kind != "free":
-            row["control_s_per_motion_batch1"] = single_times(loaded, requests, noise, cons, args.single)
+            row["control_s_per_motion_batch1"] = single_times(loaded, requests, noise, cons, args.single, settings)
         report["rows"][kind] = row
         print(kind, json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
     rq = quality(ev, real, joints, captions, real_emb, args.seed)
     report["rows"]["real"] = rq
     print("real", json.dumps({k: round(v, 4) for k, v in rq.items()}))
+    if args.no_continue:
+        return _write(report, args.json)
     previous, cons, places = continuation_sets(joints)
     t0 = time.perf_counter()
     motions, per_motion = run_kind(loaded, requests, noise, cons, 32, places)
@@ -204,9 +233,13 @@ def main() -> None:
     print("continue", json.dumps({k: round(v, 4) for k, v in row.items()}), flush=True)
     report["end_to_end_120_frames"] = end_to_end(loaded, captions[0], args.single)
     print("end to end, 120 frames:", json.dumps(report["end_to_end_120_frames"]), flush=True)
+    _write(report, args.json)
+
+
+def _write(report: dict, path: str | None) -> None:
     report["load_after"] = os.getloadavg()
-    if args.json:
-        with open(args.json, "w") as fh:
+    if path:
+        with open(path, "w") as fh:
             json.dump(report, fh, indent=1)
 
 

@@ -34,6 +34,7 @@ class Constraints:
     keyframes: dict[int, np.ndarray] = field(default_factory=dict)
     fade: int = 0  # frames over which whole poses' remaining miss fades out (warp_poses); 0: WARP_FRAMES
     origin: str = ""
+    facing: bool = False  # the root faces along the path where it moves (path_yaws)
 
     def __post_init__(self) -> None:
         self.frames = _whole_number(self.frames, "frames")
@@ -61,6 +62,8 @@ class Constraints:
                 _check_start(pose[0, [0, 2]], "keyframe 0's root")
             keyframes[f] = pose
         self.keyframes = keyframes
+        if self.facing and self.path is None:
+            raise ValueError("facing along the path needs a path")
 
     def root_points(self) -> np.ndarray | None:
         """(frames, 2) ground points the root must pass through: the path's, and the root's (x, z) of keyframes
@@ -72,19 +75,38 @@ class Constraints:
         return None if np.isnan(out).all() else out
 
     def root_yaws(self) -> np.ndarray | None:
-        """(frames,) facings (yaw, rad) the root must take: those of keyframes that set the hips and shoulders
-        apart (a pose with them on one vertical line faces nowhere); None when there are none."""
-        out = np.full(self.frames, np.nan)
+        """(frames,) facings (yaw, rad) the root must take: along the path where it moves, with ``facing``; those
+        of keyframes that set the hips and shoulders apart (a pose with them on one vertical line faces nowhere),
+        which win; None when there are none."""
+        out = path_yaws(self.path) if self.facing else np.full(self.frames, np.nan)
         for f, pose in self.keyframes.items():
             if not np.isnan(pose[list(FACE_JOINTS)]).any() and has_facing(pose):
                 out[f] = facing_yaw(pose)
         return None if np.isnan(out).all() else out
 
+    def record(self) -> dict:
+        """Everything, as JSON (NaN as null): what a server sends its engine process (:meth:`from_record`)."""
+        def plain(a: np.ndarray) -> list:
+            return np.where(np.isnan(a), None, a.astype(object)).tolist()
+
+        return {"frames": self.frames, "path": None if self.path is None else plain(self.path),
+                "keyframes": {str(f): plain(p) for f, p in self.keyframes.items()}, "fade": self.fade,
+                "origin": self.origin, "facing": self.facing}
+
+    @classmethod
+    def from_record(cls, record: dict) -> Constraints:
+        def array(rows) -> np.ndarray:
+            return np.array(rows, dtype=np.float64)  # None becomes NaN
+
+        return cls(record["frames"], path=None if record["path"] is None else array(record["path"]),
+                   keyframes={int(f): array(p) for f, p in record["keyframes"].items()}, fade=record["fade"],
+                   origin=record["origin"], facing=record["facing"])
+
     def describe(self, settings=None) -> dict:
         """What a manifest records: the path's set frames and points, the keyframes' set joints, the settings."""
         from dataclasses import asdict
 
-        out: dict = {"frames": self.frames}
+        out: dict = {"frames": self.frames, **({"facing": True} if self.facing else {})}
         if self.path is not None:
             on = ~np.isnan(self.path).any(-1)
             out["path"] = [[int(f), *map(float, self.path[f])] for f in np.nonzero(on)[0]]
@@ -130,6 +152,24 @@ def path_points(waypoints: np.ndarray, frames: int, fps: float = 20.0) -> np.nda
     out = np.stack([np.interp(t, w[:, 0], w[:, 1]), np.interp(t, w[:, 0], w[:, 2])], -1)
     out[(t < w[0, 0] - 1e-9) | (t > w[-1, 0] + 1e-9)] = np.nan  # a waypoint on a frame keeps it (float rounding)
     return out.astype(np.float32)
+
+
+FACING_SPEED = 0.2  # m/s: where a path moves slower than this it sets no facing (standing has no direction)
+FACING_FROM = 10  # frames: every motion starts facing +z; the path's facing is set from here, turned into before
+
+
+def path_yaws(path: np.ndarray, fps: float = FPS) -> np.ndarray:
+    """(frames,) the yaw (rad, about +y from +z) of a path's (frames, 2) direction of travel, over two frames each
+    side, from frame :data:`FACING_FROM` on (the root turns into it from its start, facing +z, over those frames);
+    NaN before, and where the path is free nearby or slower than :data:`FACING_SPEED`."""
+    p = np.asarray(path, np.float64)
+    out = np.full(len(p), np.nan)
+    for f in range(FACING_FROM, len(p)):
+        a, b = max(f - 2, 0), min(f + 2, len(p) - 1)
+        step = p[b] - p[a]
+        if b > a and not np.isnan(step).any() and np.hypot(*step) / ((b - a) / fps) >= FACING_SPEED:
+            out[f] = np.arctan2(step[0], step[1])
+    return out
 
 
 def _across(j):
@@ -291,10 +331,28 @@ def _warp_field(miss: dict[int, np.ndarray], frames: int, fade: int) -> np.ndarr
     return out
 
 
+def meet(features: np.ndarray, c: Constraints) -> np.ndarray:
+    """Features (T, 263) that meet ``c``: the root closed onto its points and facings (:func:`close_root`), keyframes
+    that set some joints completed into whole poses by inverse kinematics on the motion's own pose there
+    (:func:`lsgan.motion.ik.reach_pose`), then every keyframe warped in (:func:`warp_poses`). The last two stages of
+    control, shared by every runtime."""
+    from lsgan.data.features import recover_from_ric
+    from lsgan.motion.ik import reach_pose
+
+    closed = close_root(features, c.root_points(), c.root_yaws())
+    partial = [f for f, pose in c.keyframes.items() if np.isnan(pose).any()]
+    keys = dict(c.keyframes)
+    if partial:
+        joints = recover_from_ric(closed.astype(np.float64))
+        keys.update({f: reach_pose(joints[f], c.keyframes[f]) for f in partial})
+    return warp_poses(closed, keys, c.fade or WARP_FRAMES)
+
+
 def measure(joints: np.ndarray, c: Constraints) -> dict:
     """How far a motion's joints (T, 22, 3) are from ``c``, in metres: the root's ground distance to the path over
-    its set frames, and each keyframed joint's distance over its set coordinates; mean and largest of each, absent
-    when there is nothing of that kind to meet."""
+    its set frames, and each keyframed joint's distance over its set coordinates; with ``facing``, the angle (deg)
+    between the body's facing and the path's direction where it moves; mean and largest of each, absent when there
+    is nothing of that kind to meet."""
     j = np.asarray(joints, np.float64)
     out = {}
     if c.path is not None and not np.isnan(c.path).all():
@@ -308,6 +366,12 @@ def measure(joints: np.ndarray, c: Constraints) -> dict:
             diff = np.where(set_, j[f] - np.nan_to_num(pose), 0.0)
             d += list(np.linalg.norm(diff, axis=-1)[set_.any(-1)])
         out["keyframes_m"] = {"mean": float(np.mean(d)), "max": float(np.max(d))}
+    if c.facing:
+        want = path_yaws(c.path)
+        on = ~np.isnan(want)
+        if on.any():
+            d = np.degrees(np.abs(np.angle(np.exp(1j * (facing_yaw(j[: c.frames][on]) - want[on])))))
+            out["facing_deg"] = {"mean": float(d.mean()), "max": float(d.max())}
     seams = _seam_velocity(j, c)
     if seams:
         out["seam_velocity_m_s"] = {"mean": float(np.mean(seams)), "max": float(np.max(seams))}
@@ -331,37 +395,41 @@ def _seam_velocity(j: np.ndarray, c: Constraints) -> list[float]:
 
 
 def read_path(path: str | os.PathLike, frames: int, fps: float = FPS) -> np.ndarray:
-    """A root path (frames, 2) from a file, shifted so that it starts at the origin where the motion starts.
-
-    CSV (optionally a header line of names; '#' comments) or JSON (a list of rows, or {"points": rows}): rows of
-    three numbers are waypoints (time s, x, z) from 0 s, at least a frame apart, within the motion, linear between
-    them and free after the last; rows of two are one ground point (x, z) per frame from frame 0, free after the
-    last. Errors name the file."""
+    """A root path (frames, 2) from a file: CSV (optionally a header line of names; '#' comments) or JSON (a list of
+    rows, or {"points": rows}), read by :func:`path_from_rows`. Errors name the file."""
     from lsgan.errors import reading
 
     with reading(path, "a path: rows of (time s, x, z) waypoints or (x, z) per frame, as CSV or JSON"):
-        rows = _rows(Path(path))
-        if rows.ndim != 2 or rows.shape[1] not in (2, 3) or not len(rows):
-            raise ValueError(f"rows of 2 or 3 numbers, got an array of shape {rows.shape}")
-        if not np.isfinite(rows).all() or (np.abs(rows) > MAX_COORD).any():
-            raise ValueError(f"a number is NaN, infinite or beyond {MAX_COORD:.0f} (metres and seconds)")
-        if rows.shape[1] == 2:
-            if len(rows) > frames:
-                raise ValueError(f"{len(rows)} points for a motion of {frames} frames")
-            out = np.full((frames, 2), np.nan, np.float32)
-            out[: len(rows)] = rows - rows[0]
-            return out
-        t = rows[:, 0]
-        if t[0] != 0:
-            raise ValueError(f"the first waypoint is at {t[0]:g} s: a path starts with the motion, at 0 s")
-        if (np.diff(t) < 1 / fps - 1e-9).any():
-            k = int(np.argmax(np.diff(t) < 1 / fps - 1e-9))
-            raise ValueError(f"waypoints at {t[k]:g} and {t[k + 1]:g} s are less than a frame ({1 / fps:g} s) "
-                             "apart (times must increase)")
-        if t[-1] > (frames - 1) / fps + 1e-9:
-            raise ValueError(f"the path runs to {t[-1]:g} s; the motion ends at {(frames - 1) / fps:g} s "
-                             f"(frame {frames - 1})")
-        return path_points(rows - np.array([0.0, *rows[0, 1:]]), frames, fps)
+        return path_from_rows(_rows(Path(path)), frames, fps)
+
+
+def path_from_rows(rows, frames: int, fps: float = FPS) -> np.ndarray:
+    """A root path (frames, 2) from rows, shifted so that it starts at the origin where the motion starts (the file's
+    and the server's rule). Rows of three numbers are waypoints (time s, x, z) from 0 s, at least a frame apart,
+    within the motion, linear between them and free after the last; rows of two are one ground point (x, z) per
+    frame from frame 0, free after the last."""
+    rows = np.asarray(rows, np.float64)
+    if rows.ndim != 2 or rows.shape[1] not in (2, 3) or not len(rows):
+        raise ValueError(f"rows of 2 or 3 numbers, got an array of shape {rows.shape}")
+    if not np.isfinite(rows).all() or (np.abs(rows) > MAX_COORD).any():
+        raise ValueError(f"a number is NaN, infinite or beyond {MAX_COORD:.0f} (metres and seconds)")
+    if rows.shape[1] == 2:
+        if len(rows) > frames:
+            raise ValueError(f"{len(rows)} points for a motion of {frames} frames")
+        out = np.full((frames, 2), np.nan, np.float32)
+        out[: len(rows)] = rows - rows[0]
+        return out
+    t = rows[:, 0]
+    if t[0] != 0:
+        raise ValueError(f"the first waypoint is at {t[0]:g} s: a path starts with the motion, at 0 s")
+    if (np.diff(t) < 1 / fps - 1e-9).any():
+        k = int(np.argmax(np.diff(t) < 1 / fps - 1e-9))
+        raise ValueError(f"waypoints at {t[k]:g} and {t[k + 1]:g} s are less than a frame ({1 / fps:g} s) "
+                         "apart (times must increase)")
+    if t[-1] > (frames - 1) / fps + 1e-9:
+        raise ValueError(f"the path runs to {t[-1]:g} s; the motion ends at {(frames - 1) / fps:g} s "
+                         f"(frame {frames - 1})")
+    return path_points(rows - np.array([0.0, *rows[0, 1:]]), frames, fps)
 
 
 _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?(nan|inf|infinity)", re.IGNORECASE)
@@ -389,16 +457,22 @@ def _rows(path: Path) -> np.ndarray:
             data = json.loads(text)
         except RecursionError:
             raise ValueError("JSON nested too deeply") from None
-        data = data["points"] if isinstance(data, dict) else data
-        if not isinstance(data, list):
-            raise ValueError("a list of rows, or {\"points\": rows}")
-        rows = [_numbers(r, f"row {i + 1}") for i, r in enumerate(data)]
-    else:
-        lines = [ln.split("#")[0].strip() for ln in text.splitlines()]
-        lines = [ln for ln in lines if ln]
-        if lines and not any(ch.isdigit() for ch in lines[0].replace(",", "")):
-            lines = lines[1:]  # a header of names
-        rows = [[_number(v) for v in ln.replace(";", ",").split(",")] for ln in lines]
+        return json_rows(data["points"] if isinstance(data, dict) and "points" in data else data)
+    lines = [ln.split("#")[0].strip() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    if lines and not any(ch.isdigit() for ch in lines[0].replace(",", "")):
+        lines = lines[1:]  # a header of names
+    return _table([[_number(v) for v in ln.replace(";", ",").split(",")] for ln in lines])
+
+
+def json_rows(data) -> np.ndarray:
+    """Rows of numbers from parsed JSON (a list of lists of numbers, no booleans or strings), as a (K, N) array."""
+    if not isinstance(data, list):
+        raise ValueError("a list of rows, or {\"points\": rows}")
+    return _table([_numbers(r, f"row {i + 1}") for i, r in enumerate(data)])
+
+
+def _table(rows: list[list[float]]) -> np.ndarray:
     if not rows:
         raise ValueError("no points")
     if len({len(r) for r in rows}) > 1:
@@ -425,27 +499,42 @@ def read_keyframe(spec: str, frames: int) -> tuple[int, np.ndarray]:
         raise FileNotFoundError(f"{path}: no such keyframe file")
     with reading(path, "a keyframe: a .npy of 22 joints x 3, or a .json of joint names to [x, y, z]"):
         if path.suffix.lower() == ".json":
-            pose = np.full((NUM_JOINTS, 3), np.nan)
             try:
                 data = json.loads(path.read_text(encoding="utf-8-sig"))
             except RecursionError:
                 raise ValueError("JSON nested too deeply") from None
-            if not isinstance(data, dict) or not data:
-                raise ValueError("an object of joint names to [x, y, z], with at least one joint")
-            for name, xyz in data.items():
-                values = _numbers(xyz, f"joint {name!r}")
-                if len(values) != 3:
-                    raise ValueError(f"joint {name!r} has {len(values)} coordinates, not 3")
-                pose[_joint(name)] = values
+            pose = pose_from_json(data)
         else:
-            pose = load_npy(path).astype(np.float64)
-            if pose.shape != (NUM_JOINTS, 3):
-                raise ValueError(f"a pose of this skeleton is ({NUM_JOINTS}, 3) joints (HumanML3D's order), "
-                                 f"not {pose.shape}")
-            if np.isnan(pose).any():
-                raise ValueError("a coordinate is NaN (a .npy pose sets every joint; a .json sets some)")
-        _check_coordinates(pose, "the pose")
-    return f, pose.astype(np.float32)
+            pose = whole_pose(load_npy(path))
+    return f, pose
+
+
+def whole_pose(pose) -> np.ndarray:
+    """A pose (22, 3) that sets every joint, in HumanML3D's order, finite and within :data:`MAX_COORD`."""
+    pose = np.asarray(pose, np.float64)
+    if pose.shape != (NUM_JOINTS, 3):
+        raise ValueError(f"a pose of this skeleton is ({NUM_JOINTS}, 3) joints (HumanML3D's order), not {pose.shape}")
+    if np.isnan(pose).any():
+        raise ValueError("a coordinate is NaN (a whole pose sets every joint; name joints to set some)")
+    _check_coordinates(pose, "the pose")
+    return pose.astype(np.float32)
+
+
+def pose_from_json(data) -> np.ndarray:
+    """A pose (22, 3), NaN = free, from parsed JSON: {"joint name or index": [x, y, z], ...} for some joints, or
+    a list of the 22 joints' [x, y, z] (:func:`whole_pose`)."""
+    if isinstance(data, list):
+        return whole_pose(json_rows(data))
+    if not isinstance(data, dict) or not data:
+        raise ValueError("an object of joint names to [x, y, z], with at least one joint")
+    pose = np.full((NUM_JOINTS, 3), np.nan)
+    for name, xyz in data.items():
+        values = _numbers(xyz, f"joint {name!r}")
+        if len(values) != 3:
+            raise ValueError(f"joint {name!r} has {len(values)} coordinates, not 3")
+        pose[_joint(name)] = values
+    _check_coordinates(pose, "the pose")
+    return pose.astype(np.float32)
 
 
 def _joint(name: str) -> int:
@@ -463,6 +552,16 @@ def reachable_speed(feat_mean: np.ndarray, feat_std: np.ndarray, fps: float = FP
     one must not be refused; a teleport (tens of m/s) still is."""
     m, sd = np.abs(np.asarray(feat_mean, np.float64)[1:3]), np.asarray(feat_std, np.float64)[1:3]
     return float(2.0 * np.linalg.norm(m + 4 * sd) * fps)
+
+
+def model_reach(feat_mean: np.ndarray, feat_std: np.ndarray) -> tuple[float, np.ndarray]:
+    """What :func:`check_reach` holds constraints to for a model whose VAE has these feature statistics: its
+    :func:`reachable_speed` and its skeleton's 22 bone lengths (m, the mean pose's)."""
+    from lsgan.data.features import recover_from_ric
+    from lsgan.data.skeleton import bone_lengths
+
+    mean = np.asarray(feat_mean, np.float32)
+    return reachable_speed(mean, feat_std), bone_lengths(recover_from_ric(mean[None])[0].astype(np.float64))
 
 
 def check_reach(c: Constraints, speed: float, skeleton: np.ndarray | None = None, fps: float = FPS) -> None:

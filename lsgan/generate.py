@@ -26,12 +26,12 @@ from lsgan.generation import (  # noqa: F401
     claim_generation,
     decode_batches,
     decoded_motion,
+    place_measured,
     read_prompts,
     write_generation,
 )
 from lsgan.generation import draw_noise as numpy_noise
-from lsgan.constraints import (WARP_FRAMES, Constraints, Placement, check_reach, close_root, measure, reachable_speed,
-                               warp_poses)
+from lsgan.constraints import Constraints, Placement, check_reach, meet, model_reach
 from lsgan.control import ControlSettings
 from lsgan.threads import LARGE_BATCH, ThreadPolicy
 
@@ -210,14 +210,15 @@ def run_models(loaded: Loaded, requests: list[Request], nums: list[int], noise: 
                guidance: float | None = None, eta: float | None = None,
                threads: ThreadPolicy | None = None,
                constraints: list[Constraints] | None = None,
-               control_settings: ControlSettings | None = None) -> tuple[list[np.ndarray], dict, dict]:
+               control_settings: ControlSettings | None = None, close: bool = True) -> tuple[list[np.ndarray], dict, dict]:
     """Features (T, 263) of ``nums[i]`` motions per request, from ``noise`` (one row per motion, in order): the
     pass ``generate`` and ``lsgan serve`` share. Returns (features, timings in s, sampling options).
 
     ``threads``: a caller's long-lived policy (a server's: it measures the machine's load across passes), updated
     here; by default one made for this pass and undone after it. ``constraints``: one per motion
     (:mod:`lsgan.constraints`), approached by optimising the latents (:func:`steer`), then met exactly by closing
-    the root onto them and warping whole poses in (docs/control.md).
+    the root onto them and warping whole poses in (docs/control.md; ``close=False``: the caller does that last part,
+    :func:`lsgan.constraints.meet`).
     """
     timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
     dev = loaded.device
@@ -234,23 +235,17 @@ def run_models(loaded: Loaded, requests: list[Request], nums: list[int], noise: 
         if constraints is not None:
             z = steer(loaded, z, noise, cond, constraints, control_settings or ControlSettings(), batch_size, timings)
         feats = _decode(loaded.decoder, loaded.vae_meta, z, frames, dev, batch_size, policy, timings)
-        if constraints is not None:
-            feats = [warp_poses(close_root(f, c.root_points(), c.root_yaws()), c.keyframes, c.fade or WARP_FRAMES)
-                     for f, c in zip(feats, constraints)]
+        if constraints is not None and close:
+            feats = [meet(f, c) for f, c in zip(feats, constraints)]
     return feats, timings, sampling
 
 
 def check_constraints(vae_meta: dict, c: Constraints, request: Request) -> Constraints:
     """``c`` for ``request``, or an error saying why no motion of the VAE ``vae_meta`` decodes (its ``load_vae``
     meta) can meet it: another length, a root faster than its training data's, a pose of another skeleton."""
-    from lsgan.data.features import recover_from_ric
-    from lsgan.data.skeleton import bone_lengths
-
     if c.frames != request.frames:
         raise ValueError(f"the constraints are for {c.frames} frames, the motion has {request.frames}")
-    mean, std = np.asarray(vae_meta["mean"], np.float32), np.asarray(vae_meta["std"], np.float32)
-    skeleton = bone_lengths(recover_from_ric(mean[None])[0].astype(np.float64))
-    check_reach(c, reachable_speed(mean, std), skeleton)
+    check_reach(c, *model_reach(vae_meta["mean"], vae_meta["std"]))
     return c
 
 
@@ -364,10 +359,7 @@ def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, se
                                           control_settings=control_settings)
     motions = [decoded_motion(requests[k // num], k % num, f, fix_feet) for k, f in enumerate(feats)]
     if each is not None:
-        for m, c in zip(motions, each):
-            m.control = measure(m.joints, c)
-            if placement is not None:
-                m.joints, m.raw_joints = placement.apply(m.joints), placement.apply(m.raw_joints)
+        place_measured(motions, each, placement)
     return Generation(motions=motions, timings_s=timings, gan=loaded.gan, vae=loaded.vae, seed=seed,
                       kind=loaded.meta["kind"], sampling=sampling, fix_feet=fix_feet,
                       control=None if constraints is None else {

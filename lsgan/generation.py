@@ -84,6 +84,18 @@ def decoded_motion(request: Request, sample: int, features: np.ndarray, fix_feet
     return Motion(request=request, sample=sample, features=features, joints=joints, raw_joints=raw)
 
 
+def place_measured(motions: list[Motion], each: list, placement=None) -> None:
+    """Record on each motion how far it is from its constraints (:func:`lsgan.constraints.measure`, in its own
+    frame), then move it where ``placement`` (a :class:`lsgan.constraints.Placement`) puts it. Every runtime's last
+    step of control."""
+    from lsgan.constraints import measure
+
+    for m, c in zip(motions, each, strict=True):
+        m.control = measure(m.joints, c)
+        if placement is not None:
+            m.joints, m.raw_joints = placement.apply(m.joints), placement.apply(m.raw_joints)
+
+
 @dataclass
 class Generation:
     motions: list[Motion]

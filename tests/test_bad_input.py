@@ -580,7 +580,7 @@ CASES = [
          "path.json: not a path"),
     Case("path-huge", lambda w, p: path_args(w, p, "0,0\n1e30,0\n"), 1, "beyond 10000"),
     Case("path-with-timeline", lambda w, p: timeline_args(w, p, "walk#40\n") + ["--path", written(
-        w / "path.csv", b"0,0\n")], 2, "--path, --keyframe, --continue and --inbetween work with --runtime torch"),
+        w / "path.csv", b"0,0\n")], 2, "--path, --keyframe, --continue and --inbetween make one motion: not with --timeline"),
     Case("keyframe-beyond-motion", lambda w, p: keyframe_args(w, p, 40, standing_pose()), 1, "keyframe 40 (40:"),
     Case("keyframe-no-frame", lambda w, p: generate_args(p, w / "out", "--keyframe", "pose.npy"), 1,
          "a keyframe is FRAME:FILE"),

@@ -217,6 +217,31 @@ def test_one_seed_gives_one_motion_in_both_runtimes(runs: Path, tmp_path: Path) 
             np.testing.assert_allclose(b, a, atol=1e-4, rtol=0, err_msg=f"{e[kind]}")
 
 
+def test_onnx_route_meets_constraints_as_torch_does_without_steering(runs: Path, tmp_path: Path) -> None:
+    """``generate --runtime onnx --path --keyframe``: the path met to float precision and the manifest saying the
+    motions were not steered; the joints equal the torch runtime's with its optimisation off (0 steps), so both
+    meet constraints by one implementation (lsgan.constraints.meet, place_measured)."""
+    from lsgan.constraints import Constraints, read_keyframe, read_path
+    from lsgan.control import ControlSettings
+
+    (tmp_path / "path.csv").write_text("t,x,z\n0,0,0\n1.5,0.8,1.2\n2.35,1.0,2.0\n")
+    (tmp_path / "hand.json").write_text(json.dumps({"right_wrist": [0.6, 1.0, 1.3]}))
+    out = lsgan("generate", "--runtime", "onnx", "--gan", runs / "gan-onnx", "--text", PROMPTS[0], "--frames", 48,
+                "--num", 2, "--seed", 3, "--path", tmp_path / "path.csv", "--keyframe", f"30:{tmp_path / 'hand.json'}",
+                "-o", tmp_path / "onnx", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "root path: missed by 0.00 cm" in out.stderr
+    manifest = json.loads((tmp_path / "onnx" / "manifest.json").read_text())
+    assert manifest["control"]["steered"] is False and manifest["control"]["path"][0] == [0, 0.0, 0.0]
+    c = Constraints(48, path=read_path(tmp_path / "path.csv", 48),
+                    keyframes=dict([read_keyframe(f"30:{tmp_path / 'hand.json'}", 48)]))
+    ref = generate(runs / "gan", runs / "vae", [Request(text=PROMPTS[0], frames=48)], num=2, seed=3, constraints=c,
+                   control_settings=ControlSettings(noise_steps=0))
+    for entry, motion in zip(manifest["motions"], ref.motions, strict=True):
+        assert entry["control"]["path_m"]["max"] < 1e-4
+        np.testing.assert_allclose(np.load(tmp_path / "onnx" / entry["joints"]), motion.joints, atol=1e-4, rtol=0)
+
+
 @pytest.mark.parametrize("threads, spin_us, spinning", [(1, SPIN_US, "0"), (2, SPIN_US, "1"), (2, 0, "0")])
 def test_only_a_pool_spin_waits_and_only_briefly(threads: int, spin_us: int, spinning: str) -> None:
     opts = session_options(threads, spin_us)

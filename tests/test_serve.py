@@ -47,7 +47,8 @@ def test_health_info_and_schema(server: Server) -> None:
     assert sk["chain_colours"] == ["#dc2828", "#1e5adc", "#3c3c3c", "#dc2828", "#1e5adc"]  # right red, left blue
     status, schema = server.json("GET", "/openapi.json")
     body = schema["paths"]["/v1/generate"]["post"]["requestBody"]["content"]["application/json"]["schema"]
-    assert status == 200 and set(body["properties"]) == {"text", "action", "frames", "num", "seed"}
+    assert status == 200 and set(body["properties"]) == {"text", "action", "frames", "num", "seed", "path", "facing",
+                                                         "keyframes", "continue_from"}
     assert "GenerateResponse" in json.dumps(schema["paths"]["/v1/generate"]["post"]["responses"]["200"])
     status, _, page = server.request("GET", "/docs")
     assert status == 200 and b"openapi.json" in page
@@ -58,7 +59,8 @@ def test_motions_equal_lsgan_generates(server: Server, serve_models: Path, tmp_p
     SAME (1e-5 m), compared on the exact .npy downloads; the JSON joints are those rounded to 0.1 mm."""
     out = server.generate(text=PROMPT, frames=48, num=2, seed=3)
     assert (out["seed"], out["fps"], len(out["motions"])) == (3, 20.0, 2)
-    assert set(out["timings_ms"]) == {"queue", "text", "generator", "decoder", "total"}
+    assert set(out["timings_ms"]) == {"queue", "text", "generator", "decoder", "control", "total"}
+    assert out["timings_ms"]["control"] == 0 and "control" not in out["motions"][0]
     assert out["timings_ms"]["total"] >= out["timings_ms"]["queue"] >= 0 and out["batch_size"] >= 2
     done = lsgan("generate", "--gan", "gan", "--vae", "vae", "--text", PROMPT, "--frames", 48, "--num", 2,
                  "--seed", 3, "-o", tmp_path / "gen", cwd=serve_models)
@@ -103,6 +105,41 @@ def test_same_seed_same_motion_alone_or_batched(server: Server) -> None:
         got = [npy(server, m) for m in out["motions"]]
         assert [g.shape[0] for g in got] == [ask["frames"]] * ask["num"]
         assert max(np.abs(g - r).max() for g, r in zip(got, ref)) < SAME, ask
+
+
+def test_constraints_equal_lsgan_generate(server: Server, serve_models: Path, tmp_path: Path) -> None:
+    """A path with a keyframe, then a continuation of that motion by its id: each answer says how far its motions
+    are from the constraints (the path met to float precision), and equals ``lsgan generate --path --keyframe`` and
+    ``--continue`` (given the first motion's .npy download) with the same seed within SAME."""
+    path = [[0.0, 0.0, 0.0], [1.0, 0.4, 0.6], [1.95, 0.5, 1.4]]
+    hand = {"left_wrist": [0.5, 1.1, 0.7]}
+    status, info = server.json("GET", "/v1/info")
+    assert info["control"]["steers"] is True and info["control"]["max_speed_m_s"] > 1
+    first = server.generate(text=PROMPT, frames=40, seed=5, path=path, keyframes=[{"frame": 20, "joints": hand}])
+    got = npy(server, first["motions"][0])
+    assert first["motions"][0]["control"]["path_m"]["max"] < 1e-4 and "placement" not in first
+    assert first["timings_ms"]["control"] > 0 and first["batch_size"] == 1
+    (tmp_path / "path.json").write_text(json.dumps(path))
+    (tmp_path / "hand.json").write_text(json.dumps(hand))
+    done = lsgan("generate", "--gan", "gan", "--vae", "vae", "--text", PROMPT, "--frames", 40, "--seed", 5,
+                 "--path", tmp_path / "path.json", "--keyframe", f"20:{tmp_path / 'hand.json'}", "-o", tmp_path / "a",
+                 cwd=serve_models)
+    assert done.returncode == 0, done.stderr
+    entry = json.loads((tmp_path / "a" / "manifest.json").read_text())["motions"][0]
+    assert np.abs(got - np.load(tmp_path / "a" / entry["joints"])).max() < SAME
+    assert entry["control"]["keyframes_m"]["max"] == pytest.approx(first["motions"][0]["control"]["keyframes_m"]["max"],
+                                                                  abs=SAME)
+
+    then = server.generate(text="a person sits down", frames=30, seed=6, continue_from=first["motions"][0]["id"])
+    cont = npy(server, then["motions"][0])
+    assert set(then["placement"]) == {"yaw_rad", "x_m", "z_m"}
+    assert np.abs(cont[:5] - got[-5:]).max() < 0.03  # it starts where the first motion ends
+    np.save(tmp_path / "first.npy", got)
+    done = lsgan("generate", "--gan", "gan", "--vae", "vae", "--text", "a person sits down", "--frames", 30,
+                 "--seed", 6, "--continue", tmp_path / "first.npy", "-o", tmp_path / "b", cwd=serve_models)
+    assert done.returncode == 0, done.stderr
+    entry = json.loads((tmp_path / "b" / "manifest.json").read_text())["motions"][0]
+    assert np.abs(cont - np.load(tmp_path / "b" / entry["joints"])).max() < SAME
 
 
 def test_glb_from_the_api_passes_the_khronos_validator(server: Server, tmp_path: Path) -> None:
@@ -165,6 +202,11 @@ def test_onnx_model_behind_an_api_key(serve_models: Path, tmp_path: Path) -> Non
         for motion, entry in zip(out["motions"], entries, strict=True):
             got = npy(s, motion, {"X-API-Key": key})
             assert np.abs(got - np.load(tmp_path / "gen" / entry["joints"])).max() < SAME
+        # constraints without gradients: met exactly after decoding, not steered (docs/control.md)
+        assert info["control"]["steers"] is False
+        status, out = s.json("POST", "/v1/generate", {**ask, "num": 1, "path": [[0, 0, 0], [2.5, 1.0, 1.5]]},
+                             {"X-API-Key": key})
+        assert status == 200 and out["motions"][0]["control"]["path_m"]["max"] < 1e-4, out
         assert "onnx" in s.stderr and "API key required" in s.stderr
     finally:
         assert s.stop() == 0, s.stderr

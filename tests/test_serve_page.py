@@ -65,7 +65,7 @@ def assert_only_own_origin(report: dict, url: str) -> None:
 
 
 def colour_counts(png: Path, box: dict) -> dict[str, int]:
-    """Pixels of the canvas region that are clearly blue, red, or anything but near-white."""
+    """Pixels of the canvas region that are clearly blue, red, orange (a drawn path), or anything but near-white."""
     from PIL import Image
 
     with Image.open(png) as im:
@@ -74,6 +74,7 @@ def colour_counts(png: Path, box: dict) -> dict[str, int]:
     view = rgb[y0:y0 + int(box["height"]), x0:x0 + int(box["width"])]
     r, g, b = view[..., 0], view[..., 1], view[..., 2]
     return {"blue": int(((b > 150) & (b - r > 80) & (b - g > 60)).sum()),
+            "orange": int(((r > 180) & (g > 80) & (g < 170) & (b < 90)).sum()),
             "red": int(((r > 150) & (r - g > 80) & (r - b > 80)).sum()),
             "ink": int((view.max(axis=-1) < 200).sum())}
 
@@ -108,6 +109,37 @@ def test_page_generates_plays_and_downloads(server: Server) -> None:
     assert screenshot.exists() and screenshot.stat().st_size > 10_000, "the screenshot is missing or blank"
     counts = colour_counts(screenshot, report["canvas_box"])
     assert counts["blue"] > 150 and counts["red"] > 150, f"no left/right bones in the view: {counts}"
+
+
+def test_page_draws_a_path_and_continues_the_motion(server: Server) -> None:
+    """Draw a path as a person would (press "Draw a path", drag up the view then right), generate: the page sends
+    one point per frame along the drag (up the screen is away from the camera, +z; right is -x, as the view shows
+    them), and the figure's root passes within 3 cm of every one. Then tick "continue the motion shown" and
+    generate again: the new motion starts where the first ends. The screenshot shows the drawn path in orange."""
+    screenshot = ARTIFACTS / "serve-page-path.png"
+    screenshot.unlink(missing_ok=True)
+    report = drive(url_of(server), "--text", SENTENCE, "--frames", "60", "--draw", "0,-90 80,-90", "--continue",
+                   "--no-download", "--screenshot", str(screenshot))
+    assert report["returncode"] == 0 and report["problems"] == [], \
+        f"{report['problems']}\n{report['stderr']}\nserver log:\n{server.stderr[-4000:]}"
+    assert report["failed_requests"] == [] and report["console_errors"] == []
+
+    path, root = np.array(report["sent_path"]), np.array(report["root"])
+    assert path.shape == (60, 2) and root.shape == (60, 3) and np.abs(path[0]).max() == 0
+    steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    assert 0.8 < steps.sum() < 4 and steps.std() < 0.01, "not evenly spaced along a drag of a metre or two"
+    corner = int(np.argmax(path[:, 1]))  # the drag's turn: away first (+z), then to the screen's right (-x)
+    assert path[corner, 1] > 0.4 and abs(path[corner, 0]) < 0.05 and path[-1, 0] < -0.3
+    assert np.linalg.norm(root[:, [0, 2]] - path, axis=1).max() < 0.03, "the figure's root leaves the drawn path"
+    assert "m/s" in report["drag"]["path_line"] and "path missed by" not in report["latency_text"]
+    assert report["sent_facing"] is True  # "face along the path" is ticked by default
+
+    first, then = np.array(report["last_poses"]), np.array(report["continued_poses"])
+    assert report["continue_from"] and report["continue_sent_path"] is None and report["placement"]
+    assert first.shape == then.shape == (5, 22, 3) and np.abs(then - first).max() < 0.03, "the continuation does not start where the motion ends"
+    assert "keyframes by" in report["latency_text"]
+    counts = colour_counts(screenshot, report["canvas_box"])
+    assert counts["orange"] > 100, f"the drawn path is not in the view: {counts}"
 
 
 def test_page_shows_the_servers_error(server: Server) -> None:

@@ -23,6 +23,7 @@ Examples:
   lsgan generate --gan runs/gan --vae runs/vae --text "a person waves" --keyframe 60:pose.npy -o out/
   lsgan generate --gan runs/gan --vae runs/vae --text "then sits down" --continue out/000_a-person-walks_joints.npy -o next/
   lsgan generate --gan runs/gan --vae runs/vae --text "a person turns" --inbetween a.npy b.npy --frames 80 -o mid/
+  lsgan generate --runtime onnx --gan gan-onnx --text "a person walks" --path path.csv -o out/  # met, not steered
   lsgan --threads 1 generate --runtime onnx --int8 --gan gan-onnx --prompts prompts.txt -o out/
 """)
 @click.option("--gan", required=True, type=In(exists=True),
@@ -64,6 +65,8 @@ Examples:
               "motion: CSV or JSON rows of 'time_s,x,z' waypoints (linear between them) or 'x,z' per frame, in metres, "
               "shifted to start where the motion starts (the origin, facing +z). The root passes through it exactly; "
               "manifest.json says how far every constraint was missed (docs/control.md).")
+@click.option("--facing", is_flag=True, help="--path: the root also faces along the path wherever it moves (faster "
+              "than 0.2 m/s); keyframe poses still set their own facing.")
 @click.option("--keyframe", "keyframes", multiple=True, metavar="FRAME:FILE", help="Joints to hit at FRAME: a .npy of "
               "the 22 joints (22, 3) or a .json of {joint name: [x, y, z]} for some (repeatable).")
 @click.option("--continue", "continue_from", type=In(exists=True, dir_okay=False), help="A motion to continue "
@@ -75,7 +78,7 @@ Examples:
               "wrote there (never other files).")
 def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, join, frames, seconds, num, seed,
              text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, fix_feet, path_file,
-             keyframes, continue_from, inbetween, force) -> None:
+             facing, keyframes, continue_from, inbetween, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.data.clip import ClipError
@@ -90,9 +93,11 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
                            steps=steps, guidance=guidance)
     bridged = continue_from is not None or bool(inbetween)
     controlled = path_file is not None or bool(keyframes) or bridged
-    if controlled and (timeline is not None or runtime == "onnx"):
-        raise click.UsageError("--path, --keyframe, --continue and --inbetween work with --runtime torch and without "
-                               "--timeline (control optimises through the models: onnxruntime has no gradients)")
+    if controlled and timeline is not None:
+        raise click.UsageError("--path, --keyframe, --continue and --inbetween make one motion: not with --timeline "
+                               "(its --join continue chains segments)")
+    if facing and path_file is None:
+        raise click.UsageError("--facing turns the root along --path: give a path")
     if bridged and fix_feet:
         raise click.UsageError("--fix-feet would move the feet of the frames --continue and --inbetween share with "
                                "the motions they join: give one or the other")
@@ -115,8 +120,8 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
     if not requests:
         raise click.UsageError("give --text, --prompts or --action")
     try:
-        constraints, placement = _constraints(path_file, keyframes, continue_from, inbetween, requests, vae) \
-            if controlled else (None, None)
+        constraints, placement = _constraints((path_file, facing), keyframes, continue_from, inbetween, requests,
+                                              _reach_of(runtime, gan, vae, int8)) if controlled else (None, None)
         inputs = [p for p in (vae, prompts, path_file, continue_from, *(inbetween or ())) if p] + [
             k.partition(":")[2] for k in keyframes]
         claim_generation(output, gan, *inputs, force=force)
@@ -124,7 +129,8 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
             from lsgan.deploy.runtime import generate_onnx
 
             result = generate_onnx(gan, requests, num=num, seed=seed, variant="int8" if int8 else "fp32",
-                                   batch_size=batch_size, fix_feet=fix_feet)
+                                   batch_size=batch_size, fix_feet=fix_feet, constraints=constraints,
+                                   placement=placement)
         else:
             from lsgan.generate import generate as run
 
@@ -150,7 +156,8 @@ def _report_control(result) -> None:
 
     misses = [m.control for m in result.motions if m.control is not None]
     for kind, what, unit, scale in (("path_m", "root path: missed by", "cm", 100), ("keyframes_m", "keyframe joints: "
-                                    "missed by", "cm", 100), ("seam_velocity_m_s", "velocity where the shared "
+                                    "missed by", "cm", 100), ("facing_deg", "facing along the path: missed by",
+                                    "degrees", 1), ("seam_velocity_m_s", "velocity where the shared "
                                     "frames end: changed by", "m/s", 1)):
         got = [c[kind] for c in misses if kind in c]
         if got:
@@ -158,24 +165,38 @@ def _report_control(result) -> None:
                        f"{max(g['max'] for g in got) * scale:.2f} {unit} at most ({len(got)} motions)", err=True)
 
 
-def _constraints(path_file, keyframes, continue_from, inbetween, requests, vae):
-    """(constraints, placement) of --path and --keyframe, or of --continue / --inbetween, for motions of one length
-    (every request's), checked against the VAE before anything is written."""
+def _reach_of(runtime, gan, vae, int8):
+    """What the model holds constraints to (:func:`lsgan.constraints.model_reach`): its VAE's feature statistics, or
+    the ONNX export's."""
+    from lsgan.constraints import model_reach
+
+    if runtime == "onnx":
+        from lsgan.deploy.runtime import load
+
+        return load(gan, variant="int8" if int8 else "fp32").reach()
+    from lsgan.models.vae import load_vae
+
+    meta = load_vae(vae)[1]
+    return model_reach(meta["mean"], meta["std"])
+
+
+def _constraints(path, keyframes, continue_from, inbetween, requests, reach):
+    """(constraints, placement) of --path (``path``: the file and --facing) and --keyframe, or of --continue /
+    --inbetween, for motions of one length (every request's), checked against the model's ``reach`` before anything
+    is written."""
     import numpy as np
 
     lengths = {r.frames for r in requests}
     if len(lengths) > 1:
         raise ValueError(f"constraints need motions of one length; the prompts ask for {sorted(lengths)}")
     with np.errstate(all="ignore"):  # a huge or broken number is refused by its check, not warned about by numpy
-        return _read_constraints(path_file, keyframes, continue_from, inbetween, requests, vae, lengths.pop())
+        return _read_constraints(path, keyframes, continue_from, inbetween, reach, lengths.pop())
 
 
-def _read_constraints(path_file, keyframes, continue_from, inbetween, requests, vae, frames):
+def _read_constraints(path_and_facing, keyframes, continue_from, inbetween, reach, frames):
     """:func:`_constraints` once the length is known."""
-    from lsgan.constraints import Constraints, continuing, inbetween as bridge, read_keyframe, read_path
+    from lsgan.constraints import Constraints, check_reach, continuing, inbetween as bridge, read_keyframe, read_path
     from lsgan.export.bvh import load_motion_joints
-    from lsgan.generate import check_constraints
-    from lsgan.models.vae import load_vae
 
     placement = None
     if continue_from is not None:
@@ -184,13 +205,14 @@ def _read_constraints(path_file, keyframes, continue_from, inbetween, requests, 
         a, b = (load_motion_joints(f)[0][1] for f in inbetween)
         constraints, placement = bridge(a, b, frames, source=f"{inbetween[0]} to {inbetween[1]}")
     else:
+        path_file, facing = path_and_facing
         path = read_path(path_file, frames) if path_file else None
         poses = dict(read_keyframe(k, frames) for k in keyframes)
         if len(poses) < len(keyframes):
             raise ValueError("two --keyframe options name the same frame")
-        constraints = Constraints(frames, path=path, keyframes=poses, origin=", ".join([path_file] * bool(path_file)
-                                                                                       + list(keyframes)))
-    check_constraints(load_vae(vae)[1], constraints, requests[0])
+        origin = ", ".join([path_file] * bool(path_file) + list(keyframes))
+        constraints = Constraints(frames, path=path, keyframes=poses, facing=facing, origin=origin)
+    check_reach(constraints, *reach)
     return constraints, placement
 
 

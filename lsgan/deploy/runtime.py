@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from lsgan.deploy.manifest import GRAPHS, read_manifest, variant_files, verify
-from lsgan.generation import CPU_DECODE_FRAMES, Generation, Request, decode_batches, decoded_motion, draw_noise
+from lsgan.generation import (CPU_DECODE_FRAMES, Generation, Request, decode_batches, decoded_motion, draw_noise,
+                              place_measured)
 from lsgan.textcache import PromptCache
 from lsgan.threads import FreeCores, fixed_threads, usable_cpus
 
@@ -184,15 +185,48 @@ class OnnxMotionModel:
         return out
 
     def generate(self, requests: list[Request], *, num: int = 1, seed: int = 0, noise: np.ndarray | None = None,
-                 batch_size: int = 256, fix_feet: bool = False) -> Generation:
+                 batch_size: int = 256, fix_feet: bool = False, constraints=None, placement=None) -> Generation:
         """``num`` motions per request; ``noise`` (len(requests)*num, noise_dim) replaces the seeded draw;
-        ``fix_feet`` as in :func:`lsgan.generation.decoded_motion`."""
-        n, frames = len(requests) * num, [r.frames for r in requests for _ in range(num)]
+        ``fix_feet`` as in :func:`lsgan.generation.decoded_motion`. ``constraints`` (every motion's, in its own
+        frame) are met after decoding, without the torch runtime's optimisation first (onnxruntime has no
+        gradients: docs/control.md); ``placement`` then moves the motions (a continuation's)."""
+        from lsgan.constraints import check_reach, meet
+
+        n = len(requests) * num
         if n == 0:
             raise ValueError("nothing to generate: no requests (or num=0)")
-        self.check_frames(frames)
         if noise is None:
             noise = draw_noise(seed, n, int(self.manifest["noise_dim"]))
+        if constraints is not None:
+            if any(r.frames != constraints.frames for r in requests):
+                raise ValueError(f"the constraints are for {constraints.frames} frames, the motions have "
+                                 f"{sorted({r.frames for r in requests})}")
+            check_reach(constraints, *self.reach())
+        feats, timings = self.features([r for r in requests for _ in range(num)], noise, batch_size)
+        if constraints is not None:
+            t0 = time.perf_counter()
+            feats = [meet(f, constraints) for f in feats]
+            timings["control"] = time.perf_counter() - t0
+        motions = [decoded_motion(requests[k // num], k % num, f, fix_feet) for k, f in enumerate(feats)]
+        if constraints is not None:
+            place_measured(motions, [constraints] * n, placement)
+        control = None if constraints is None else {
+            **constraints.describe(), "steered": False,
+            **({"placement": placement.describe()} if placement is not None else {})}
+        return Generation(motions=motions, timings_s=timings, seed=seed, fix_feet=fix_feet, control=control,
+                          **self._provenance())
+
+    def reach(self) -> tuple[float, np.ndarray]:
+        """What constraints are held to (:func:`lsgan.constraints.model_reach` of the export's feature statistics)."""
+        from lsgan.constraints import model_reach
+
+        return model_reach(self.feature_mean, self.feature_std)
+
+    def features(self, requests: list[Request], noise: np.ndarray, batch_size: int = 256) -> tuple[list, dict]:
+        """De-normalised features (T, 263) of one motion per request from its row of ``noise``, and the timings
+        (s) of text encoding, generator and decoder."""
+        n, frames = len(requests), [r.frames for r in requests]
+        self.check_frames(frames)
         if noise.shape != (n, self.manifest["noise_dim"]):
             raise ValueError(f"noise of shape {noise.shape}; expected ({n}, {self.manifest['noise_dim']})")
         timings = {"text_encoding": 0.0, "generator": 0.0, "vae_decoding": 0.0}
@@ -201,13 +235,12 @@ class OnnxMotionModel:
         if self.manifest["condition"] == "text":
             timings["text_encoding"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        z = self.latents(noise.astype(np.float32), np.repeat(cond, num, axis=0), batch_size)
+        z = self.latents(noise.astype(np.float32), cond, batch_size)
         timings["generator"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         feats = self.decode(z, frames, batch_size)
         timings["vae_decoding"] = time.perf_counter() - t0
-        motions = [decoded_motion(requests[k // num], k % num, f, fix_feet) for k, f in enumerate(feats)]
-        return Generation(motions=motions, timings_s=timings, seed=seed, fix_feet=fix_feet, **self._provenance())
+        return feats, timings
 
     def _provenance(self) -> dict:
         """Generation's fields that say where the motions came from: the source checkpoints and this export."""
@@ -245,12 +278,13 @@ def load(folder: str | os.PathLike, *, variant: str = "fp32", threads: int | Non
 
 def generate_onnx(folder: str | os.PathLike, requests: list[Request], *, num: int = 1, seed: int = 0,
                   noise: np.ndarray | None = None, variant: str = "fp32", threads: int | None = None,
-                  batch_size: int = 256, fix_feet: bool = False) -> Generation:
+                  batch_size: int = 256, fix_feet: bool = False, constraints=None, placement=None) -> Generation:
     """``lsgan generate --runtime onnx``: :func:`load` then :meth:`OnnxMotionModel.generate`."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    return load(folder, variant=variant, threads=threads).generate(requests, num=num, seed=seed, noise=noise,
-                                                                  batch_size=batch_size, fix_feet=fix_feet)
+    return load(folder, variant=variant, threads=threads).generate(
+        requests, num=num, seed=seed, noise=noise, batch_size=batch_size, fix_feet=fix_feet, constraints=constraints,
+        placement=placement)
 
 
 def generate_timeline_onnx(folder: str | os.PathLike, segments: list, *, overlap: int, source: str | None = None,

@@ -128,6 +128,8 @@ def info_of(engine: Engine, limits: Limits, auth: bool) -> dict:
         "condition": engine.condition, "actions": list(engine.actions), "fps": float(engine.fps),
         "max_frames": limits.max_frames, "default_frames": limits.default_frames, "min_frames": limits.min_frames,
         "limits": limits.as_dict(), "auth": auth,
+        "control": None if engine.reach is None else {"steers": bool(engine.steers),
+                                                      "max_speed_m_s": engine.reach["speed"]},
         "skeleton": {"names": list(JOINT_NAMES), "parents": list(PARENTS), "chains": [list(c) for c in KINEMATIC_CHAIN],
                      "chain_colours": ["#%02x%02x%02x" % c for c in CHAIN_COLOURS]},
     }
@@ -183,7 +185,7 @@ def create_app(engines: list[Engine], limits: Limits, *, api_key: str | None = N
         kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
         if kind != "application/json":
             raise ApiError(415, f"send the body as JSON (Content-Type: application/json), not {short(kind or 'none')}")
-        item = to_item(parse_json(await request.body()), engine, limits)
+        item = to_item(parse_json(await request.body()), engine, limits, state["store"].joints)
         job, result = await _run(state["batcher"], item, limits.timeout_s)
         body = await asyncio.get_running_loop().run_in_executor(
             state["writer"], _respond, state["store"], item, result, engine.fps, 1e3 * (job.started_at - job.queued_at),
@@ -230,15 +232,17 @@ async def _run(batcher: Batcher, item: Item, timeout_s: float):
 def _respond(store: MotionStore, item: Item, result: Result, fps: float, queue_ms: float, arrived: float) -> bytes:
     """The JSON answer: each motion stored for download, its joints rounded to 0.1 mm (:mod:`jsonfmt`)."""
     motions = []
-    for joints in result.joints:
+    for k, joints in enumerate(result.joints):
         key = store.add(Stored(joints=joints, fps=fps, title=item.text or item.action or "motion"))
         head = json.dumps({"id": key, "frames": int(len(joints)),
-                           "urls": {fmt: f"/v1/motions/{key}.{fmt}" for fmt in FORMATS}}, separators=(",", ":"))
+                           "urls": {fmt: f"/v1/motions/{key}.{fmt}" for fmt in FORMATS},
+                           **({"control": result.control[k]} if result.control else {})}, separators=(",", ":"))
         motions.append(head[:-1].encode() + b',"joints":' + joints_json(joints, JSON_ROUND) + b"}")
     timings = {"queue": round(queue_ms, 3), **{k: round(v, 3) for k, v in result.timings_ms.items()},
                "total": round(1e3 * (time.perf_counter() - arrived), 3)}
-    rest = json.dumps({"seed": item.seed, "fps": fps, "timings_ms": timings, "batch_size": result.batch_size},
-                      separators=(",", ":"))
+    placement = None if item.placement is None else dict(zip(("yaw_rad", "x_m", "z_m"), item.placement))
+    rest = json.dumps({"seed": item.seed, "fps": fps, "timings_ms": timings, "batch_size": result.batch_size,
+                       **({"placement": placement} if placement else {})}, separators=(",", ":"))
     return b'{"motions":[' + b",".join(motions) + b"]," + rest[1:].encode()
 
 

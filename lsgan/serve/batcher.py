@@ -124,8 +124,11 @@ class Batcher:
             return index
 
     def _gather(self, first: Job) -> list[Job]:
-        """``first`` and the jobs that join it within the gathering window, up to ``max_batch`` motions."""
+        """``first`` and the jobs that join it within the gathering window, up to ``max_batch`` motions. A job with
+        constraints has its pass to itself: it is optimised for tenths of a second, which others should not wait for."""
         jobs, motions = [first], first.item.num
+        if first.item.control is not None:
+            return jobs
         deadline = time.perf_counter() + self.gather_s
         while motions < self.max_batch:
             alone = self.in_flight <= len(jobs) + self.computing  # no other request admitted could join
@@ -136,7 +139,7 @@ class Batcher:
             if job is None:  # closing: finish this pass, stop after it
                 self._queue.put(None)
                 break
-            if motions + job.item.num > self.max_batch:
+            if motions + job.item.num > self.max_batch or job.item.control is not None:
                 self._carry = job
                 break
             jobs.append(job)

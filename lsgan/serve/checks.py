@@ -9,9 +9,10 @@ from pydantic import ValidationError
 
 from lsgan.serve.engine import Engine, Item
 from lsgan.serve.limits import Limits
-from lsgan.serve.schemas import GenerateRequest
+from lsgan.serve.schemas import GenerateRequest, Keyframe
 
 FIELDS = ", ".join(GenerateRequest.model_fields)
+KEYFRAME_FIELDS = ", ".join(Keyframe.model_fields)
 ALLOWED_CONTROLS = "\t\n\r"  # whitespace a pasted prompt may hold; the tokenizer reads it as spaces
 DRAWN_SEEDS = 2**31  # a seed the server draws is below this
 
@@ -63,7 +64,8 @@ def _validation_message(error: ValidationError) -> str:
     e = error.errors()[0]
     where = ".".join(str(p) for p in e["loc"]) or "body"
     if e["type"] == "extra_forbidden":
-        return f"{where}: unknown field (the fields are {FIELDS})"
+        fields = FIELDS if len(e["loc"]) == 1 else f"{KEYFRAME_FIELDS} (of a keyframe)"
+        return f"{where}: unknown field (the fields are {fields})"
     got = json_type(e["input"]) if "input" in e else ""
     msg = e["msg"][0].lower() + e["msg"][1:]
     return f"{where}: {msg}" + (f", got {got}" if got and e["type"].endswith("_type") else "")
@@ -84,8 +86,9 @@ def check_text(text: str, limits: Limits) -> str:
     return stripped
 
 
-def to_item(obj: dict, engine: Engine, limits: Limits) -> Item:
-    """The request as an engine item, every field checked against the model and the limits."""
+def to_item(obj: dict, engine: Engine, limits: Limits, lookup=lambda key: None) -> Item:
+    """The request as an engine item, every field checked against the model and the limits; ``lookup(id)``: the
+    joints (T, 22, 3) of a stored motion, or None (for ``continue_from``)."""
     try:
         req = GenerateRequest.model_validate(obj)
     except ValidationError as e:
@@ -106,4 +109,54 @@ def to_item(obj: dict, engine: Engine, limits: Limits) -> Item:
     if not 1 <= req.num <= limits.max_num:
         raise ApiError(422, f"num must be 1 to {limits.max_num}, got {short(req.num)}")
     seed = secrets.randbelow(DRAWN_SEEDS) if req.seed is None else req.seed
-    return Item(text=text, action=req.action, frames=frames, num=req.num, seed=seed)
+    control, placement = control_of(req, engine, frames, lookup)
+    return Item(text=text, action=req.action, frames=frames, num=req.num, seed=seed, control=control,
+                placement=placement)
+
+
+def control_of(req: GenerateRequest, engine: Engine, frames: int, lookup) -> tuple[dict | None, tuple | None]:
+    """The request's constraints as a record for the engine (:mod:`lsgan.constraints`), and a continuation's
+    placement; (None, None) without constraints. The file readers' rules, then the model's reach."""
+    import numpy as np
+
+    from lsgan.constraints import Constraints, check_reach, continuing, json_rows, path_from_rows, pose_from_json
+
+    given = [name for name in ("path", "keyframes", "continue_from") if getattr(req, name) is not None]
+    if req.facing and req.path is None:
+        raise ApiError(422, "facing: it turns the root along a path; send a path")
+    if not given:
+        return None, None
+    if req.keyframes == []:
+        raise ApiError(422, "keyframes: an empty list; give at least one keyframe, or leave the field out")
+    if engine.reach is None:
+        raise ApiError(422, f"{given[0]}: this server's model does not take constraints")
+    if req.continue_from is not None and len(given) > 1:
+        raise ApiError(422, "continue_from sets every constraint itself: send it without path and keyframes")
+    placement = None
+    with np.errstate(all="ignore"):  # a huge number is refused by its check, not warned about by numpy
+        if req.continue_from is not None:
+            joints = lookup(req.continue_from)
+            if joints is None:
+                raise ApiError(422, f"continue_from: no motion {short(req.continue_from)} (an unknown id, or one "
+                                    "dropped from the store)")
+            c, place = _refused("continue_from", lambda: continuing(joints, frames, source="continue_from"))
+            placement = (place.yaw, place.x, place.z)
+        else:
+            path = None if req.path is None else _refused("path", lambda: path_from_rows(json_rows(req.path), frames))
+            poses = {}
+            for i, k in enumerate(req.keyframes or ()):
+                if k.frame in poses:
+                    raise ApiError(422, f"keyframes[{i}]: a second keyframe for frame {k.frame}")
+                poses[k.frame] = _refused(f"keyframes[{i}]", lambda k=k: pose_from_json(k.joints))
+            c = _refused("constraints", lambda: Constraints(frames, path=path, keyframes=poses, facing=req.facing))
+        _refused(given[0] if len(given) == 1 else "constraints",
+                 lambda: check_reach(c, engine.reach["speed"], np.asarray(engine.reach["skeleton"])))
+    return c.record(), placement
+
+
+def _refused(where: str, make):
+    """``make()``, its ValueError a 422 naming ``where``."""
+    try:
+        return make()
+    except ValueError as e:
+        raise ApiError(422, f"{where}: {str(e).splitlines()[0]}") from None

@@ -15,18 +15,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lsgan.data.skeleton import FPS
-from lsgan.generation import Request, decoded_motion, draw_noise
+from lsgan.generation import Request, decoded_motion, draw_noise, place_measured
 
 
 @dataclass(frozen=True)
 class Item:
-    """One request of a pass: a prompt or an action label, its length, how many motions, and their seed."""
+    """One request of a pass: a prompt or an action label, its length, how many motions, and their seed; what they
+    must do (:meth:`lsgan.constraints.Constraints.record`, in their own frame) and where they then stand
+    (a :class:`lsgan.constraints.Placement`'s yaw, x, z)."""
 
     text: str | None = None
     action: str | None = None
     frames: int = 120
     num: int = 1
     seed: int = 0
+    control: dict | None = None
+    placement: tuple[float, float, float] | None = None
 
     @property
     def request(self) -> Request:
@@ -35,16 +39,18 @@ class Item:
 
 @dataclass
 class Result:
-    """An item's motions (``num`` joint arrays (T, 22, 3) float32, metres) and the pass that made them."""
+    """An item's motions (``num`` joint arrays (T, 22, 3) float32, metres) and the pass that made them; with
+    constraints, how far each motion is from them (:func:`lsgan.constraints.measure`)."""
 
     joints: list[np.ndarray]
-    timings_ms: dict[str, float] = field(default_factory=dict)  # the pass's: text, generator, decoder
+    timings_ms: dict[str, float] = field(default_factory=dict)  # the pass's: text, generator, decoder, control
     batch_size: int = 1  # motions in the pass
+    control: list[dict] | None = None
 
 
 def _ms(timings_s: dict[str, float]) -> dict[str, float]:
     return {"text": 1e3 * timings_s.get("text_encoding", 0.0), "generator": 1e3 * timings_s.get("generator", 0.0),
-            "decoder": 1e3 * timings_s.get("vae_decoding", 0.0)}
+            "decoder": 1e3 * timings_s.get("vae_decoding", 0.0), "control": 1e3 * timings_s.get("control", 0.0)}
 
 
 def _results(items: list[Item], joints: list[np.ndarray], timings_s: dict[str, float]) -> list[Result]:
@@ -54,6 +60,25 @@ def _results(items: list[Item], joints: list[np.ndarray], timings_s: dict[str, f
         out.append(Result(joints=joints[k:k + it.num], timings_ms=_ms(timings_s), batch_size=n))
         k += it.num
     return out
+
+
+def _constrained(item: Item, features: list[np.ndarray], c, timings_s: dict[str, float]) -> Result:
+    """The Result of a constrained item from its motions' features, already optimised towards ``c`` where the
+    backend can: each met exactly (:func:`lsgan.constraints.meet`), made rigid, measured, then placed."""
+    from lsgan.constraints import Placement, meet
+
+    t0 = time.perf_counter()
+    motions = [decoded_motion(item.request, 0, meet(f, c)) for f in features]
+    place_measured(motions, [c] * len(motions), Placement(*item.placement) if item.placement is not None else None)
+    timings_s = {**timings_s, "control": timings_s.get("control", 0.0) + time.perf_counter() - t0}
+    return Result(joints=[m.joints for m in motions], timings_ms=_ms(timings_s), batch_size=len(motions),
+                  control=[m.control for m in motions])
+
+
+def _split(items: list[Item]) -> tuple[list[int], list[int]]:
+    """Indices of the items without constraints (one pass) and with them (a pass each)."""
+    plain = [i for i, it in enumerate(items) if it.control is None]
+    return plain, [i for i, it in enumerate(items) if it.control is not None]
 
 
 class Engine:
@@ -66,6 +91,8 @@ class Engine:
     fps: float = float(FPS)
     max_frames: int = 196
     load_s = 0.0  # seconds to load and warm up
+    reach: dict | None = None  # what constraints are held to: {"speed": m/s, "skeleton": 22 bone lengths (m)}
+    steers = False  # whether constraints are approached by optimisation before they are met (torch) or only met
 
     def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
         """One pass over ``items``; ``threads``: intra-op threads for it where the backend can change them per
@@ -83,6 +110,7 @@ class TorchEngine(Engine):
     """A latent GAN and its VAE (``--gan RUN --vae RUN``)."""
 
     backend = "torch"
+    steers = True
 
     def __init__(self, gan: str | os.PathLike, vae: str | os.PathLike, *, device: str = "auto",
                  text_encoder_path: str | None = None, batch_size: int = 256, text_cache: int = 1024) -> None:
@@ -108,22 +136,44 @@ class TorchEngine(Engine):
         # one per pass would judge by the runnable tasks of one instant); on a GPU, torch's own count
         self.threads = ThreadPolicy(threads=None if self.loaded.device.type == "cpu" else torch.get_num_threads())
         self._fixed: dict[int, ThreadPolicy] = {}  # a pass's given count (the batcher's, beside other passes)
+        self.reach = _reach(self.loaded.vae_meta["mean"], self.loaded.vae_meta["std"])
 
     def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
-        import torch
-
-        from lsgan.generate import noise_dim, run_models
+        """Items without constraints in one pass; each constrained one in a pass of its own, as ``lsgan generate``
+        with its constraints and ``--num`` makes them (control optimises a batch together)."""
+        from lsgan.constraints import Constraints
         from lsgan.threads import ThreadPolicy
 
-        dim = noise_dim(self.loaded.model, self.loaded.meta)
-        noise = torch.from_numpy(np.concatenate([draw_noise(it.seed, it.num, dim) for it in items]))
         policy = self.threads
         if threads is not None and self.loaded.device.type == "cpu":
             policy = self._fixed.setdefault(threads, ThreadPolicy(threads=threads))
+        plain, constrained = _split(items)
+        out: list[Result | None] = [None] * len(items)
+        if plain:
+            feats, timings = self._features([items[i] for i in plain], policy)
+            requests = [items[i].request for i in plain for _ in range(items[i].num)]
+            joints = [decoded_motion(r, 0, f).joints for r, f in zip(requests, feats)]
+            for i, r in zip(plain, _results([items[i] for i in plain], joints, timings)):
+                out[i] = r
+        for i in constrained:
+            c = Constraints.from_record(items[i].control)
+            feats, timings = self._features([items[i]], policy, [c] * items[i].num)
+            out[i] = _constrained(items[i], feats, c, timings)
+        return out
+
+    def _features(self, items: list[Item], policy, constraints=None) -> tuple[list[np.ndarray], dict]:
+        """The pass of :func:`lsgan.generate.run_models` over ``items``: features and timings (s); ``constraints``
+        (one per motion) steer the latents, and are met afterwards by :func:`_constrained`."""
+        import torch
+
+        from lsgan.generate import noise_dim, run_models
+
+        dim = noise_dim(self.loaded.model, self.loaded.meta)
+        noise = torch.from_numpy(np.concatenate([draw_noise(it.seed, it.num, dim) for it in items]))
         feats, timings, _ = run_models(self.loaded, [it.request for it in items], [it.num for it in items], noise,
-                                       batch_size=self.batch_size, threads=policy)
-        requests = [it.request for it in items for _ in range(it.num)]
-        return _results(items, [decoded_motion(r, 0, f).joints for r, f in zip(requests, feats)], timings)
+                                       batch_size=self.batch_size, threads=policy, constraints=constraints,
+                                       close=False)
+        return feats, timings
 
 
 class OnnxEngine(Engine):
@@ -140,14 +190,36 @@ class OnnxEngine(Engine):
         self.actions = list(self.model.manifest.get("action_names", [])) if self.condition == "action" else []
         self.max_frames = self.model.max_frames
         self.batch_size = batch_size
+        self.reach = _reach(self.model.feature_mean, self.model.feature_std)
 
     def run(self, items: list[Item], *, threads: int | None = None) -> list[Result]:
-        """``threads`` is ignored: onnxruntime fixes a session's threads when it is made (``load_engine``)."""
+        """``threads`` is ignored: onnxruntime fixes a session's threads when it is made (``load_engine``).
+        Constrained items are met without being steered first (onnxruntime has no gradients: docs/control.md)."""
+        from lsgan.constraints import Constraints
+
         dim = int(self.model.manifest["noise_dim"])
-        noise = np.concatenate([draw_noise(it.seed, it.num, dim) for it in items])
-        requests = [it.request for it in items for _ in range(it.num)]  # one row of noise each, in order
-        result = self.model.generate(requests, noise=noise, batch_size=self.batch_size)
-        return _results(items, [m.joints.astype(np.float32) for m in result.motions], result.timings_s)
+        plain, constrained = _split(items)
+        out: list[Result | None] = [None] * len(items)
+        if plain:
+            noise = np.concatenate([draw_noise(items[i].seed, items[i].num, dim) for i in plain])
+            requests = [items[i].request for i in plain for _ in range(items[i].num)]  # one row of noise each
+            result = self.model.generate(requests, noise=noise, batch_size=self.batch_size)
+            joints = [m.joints.astype(np.float32) for m in result.motions]
+            for i, r in zip(plain, _results([items[i] for i in plain], joints, result.timings_s)):
+                out[i] = r
+        for i in constrained:
+            it = items[i]
+            feats, timings = self.model.features([it.request] * it.num, draw_noise(it.seed, it.num, dim),
+                                                 self.batch_size)
+            out[i] = _constrained(it, feats, Constraints.from_record(it.control), timings)
+        return out
+
+
+def _reach(feat_mean, feat_std) -> dict:
+    from lsgan.constraints import model_reach
+
+    speed, skeleton = model_reach(feat_mean, feat_std)
+    return {"speed": float(speed), "skeleton": [float(b) for b in skeleton]}
 
 
 def load_engine(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,

@@ -46,6 +46,11 @@ class MotionStore:
                 self._items.move_to_end(key)
             return motion
 
+    def joints(self, key: str) -> np.ndarray | None:
+        """A stored motion's joints (T, 22, 3), or None (:meth:`get`)."""
+        motion = self.get(key)
+        return None if motion is None else motion.joints
+
     def __len__(self) -> int:
         with self._lock:
             return len(self._items)

@@ -30,7 +30,7 @@ from lsgan.interrupts import sigint_held
 from lsgan.serve.engine import Engine, Item, Result
 
 _SIZES = struct.Struct("<II")  # header bytes, payload bytes
-_META = ("backend", "device", "condition", "actions", "fps", "max_frames", "load_s")
+_META = ("backend", "device", "condition", "actions", "fps", "max_frames", "load_s", "reach", "steers")
 
 
 def send(stream: BinaryIO, header: dict, payload: bytes = b"") -> None:
@@ -72,7 +72,7 @@ def _raise(header: dict) -> None:
 def _pack(results: list[Result]) -> tuple[dict, bytes]:
     joints = [np.ascontiguousarray(j, np.float32) for r in results for j in r.joints]
     header = {"results": [{"frames": [len(j) for j in r.joints], "timings_ms": r.timings_ms,
-                           "batch_size": r.batch_size} for r in results]}
+                           "batch_size": r.batch_size, "control": r.control} for r in results]}
     return header, b"".join(j.tobytes() for j in joints)
 
 
@@ -83,7 +83,8 @@ def _unpack(header: dict, payload: bytes) -> list[Result]:
         for t in r["frames"]:
             joints.append(flat[at:at + t * 66].reshape(t, 22, 3).copy())
             at += t * 66
-        results.append(Result(joints=joints, timings_ms=r["timings_ms"], batch_size=r["batch_size"]))
+        results.append(Result(joints=joints, timings_ms=r["timings_ms"], batch_size=r["batch_size"],
+                              control=r["control"]))
     return results
 
 

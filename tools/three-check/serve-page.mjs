@@ -2,7 +2,7 @@
 //
 //   node serve-page.mjs --url http://127.0.0.1:8000/ --text "a person walks forward" --screenshot out.png
 //                       [--action NAME] [--frames N] [--api-key KEY] [--expect-error] [--no-download] [--enter]
-//                       [--timeout 90] [--chromium /usr/bin/chromium]
+//                       [--draw "dx,dy dx,dy ..."] [--continue] [--timeout 90] [--chromium /usr/bin/chromium]
 //
 // Loads the page, types the sentence (or picks the action), clicks Generate (with --enter: presses Enter in the
 // text box instead) and then, by default, waits until the
@@ -12,6 +12,13 @@
 // the page then shows and clicks Generate again. With --expect-error the request is expected to fail: it waits for
 // the state "error" and reports the one-line message the page shows. Throughout it records every request the page
 // makes, the failed ones (non-2xx or network errors), console errors and uncaught page errors.
+//
+// With --draw, before Generate it clicks "Draw a path" and drags the mouse on the view from its centre (where the
+// figure starts, seen from above) through the given offsets in CSS pixels; it reports the path the page sent
+// ("sent_path", one [x, z] per frame) and the root of the motion that came back ("root", [x, y, z] per frame).
+// With --continue it then ticks "continue the motion shown", generates again and reports that motion's first five
+// poses as "continued_poses" beside the first one's last five as "last_poses" ([5][22][3] each; the report stays
+// small: a pipe takes only so much before the process exits).
 //
 // The report's "problems" lists what went wrong; the exit status is 0 when it is empty, 1 otherwise, 2 for bad
 // arguments. Expected, not problems: with --expect-error a 4xx answer to POST /v1/generate, with --api-key the 401
@@ -32,11 +39,13 @@ function parseArgs(argv) {
   const opts = { timeout: 90, chromium: process.env.CHROMIUM || '/usr/bin/chromium', expectError: false,
     download: true };
   const keys = { '--url': 'url', '--text': 'text', '--action': 'action', '--frames': 'frames',
-    '--api-key': 'apiKey', '--screenshot': 'screenshot', '--timeout': 'timeout', '--chromium': 'chromium' };
+    '--api-key': 'apiKey', '--screenshot': 'screenshot', '--timeout': 'timeout', '--chromium': 'chromium',
+    '--draw': 'draw' };
   for (let i = 0; i < argv.length; i++) {
     if (argv[i] === '--expect-error') { opts.expectError = true; continue; }
     if (argv[i] === '--no-download') { opts.download = false; continue; }
     if (argv[i] === '--enter') { opts.enter = true; continue; }
+    if (argv[i] === '--continue') { opts.continue = true; continue; }
     const key = keys[argv[i]];
     if (!key) throw new UsageError(`unknown argument ${argv[i]}`);
     if (i + 1 >= argv.length) throw new UsageError(`${argv[i]} needs a value`);
@@ -81,6 +90,7 @@ async function drive(opts, report, cleanup) {
     await page.keyboard.type(opts.text, { delay: 5 });
   }
   if (opts.frames !== undefined) await page.fill('#frames', String(opts.frames));
+  if (opts.draw !== undefined) report.drag = await drawPath(page, opts.draw);
   let clicked = Date.now();
   if (opts.apiKey !== undefined) {
     // Refused without the key: the page shows its field. Type the key and try again.
@@ -95,7 +105,8 @@ async function drive(opts, report, cleanup) {
   // Wait for the answer to the page's POST /v1/generate, whatever it is, before judging the page's state.
   const answered = (r) => r.request().method() === 'POST' && new URL(r.url()).pathname === '/v1/generate';
   const submit = opts.enter && opts.action === undefined ? page.press('#text', 'Enter') : page.click('#generate');
-  await Promise.all([page.waitForResponse(answered), submit]);
+  const [response] = await Promise.all([page.waitForResponse(answered), submit]);
+  if (opts.draw !== undefined || opts.continue) await readControl(page, response, report, opts, answered);
 
   if (opts.expectError) {
     await page.waitForFunction(() => document.body.dataset.state === 'error');
@@ -143,6 +154,43 @@ async function drive(opts, report, cleanup) {
     report.screenshot = path.resolve(opts.screenshot);
   }
   if (report.state === 'playing') report.interaction = await interact(page, report.canvas_box);
+}
+
+// Press "Draw a path" and drag from the view's centre through the offsets "dx,dy dx,dy ..." (CSS pixels).
+async function drawPath(page, offsets) {
+  const steps = offsets.trim().split(/\s+/).map((pair) => pair.split(',').map(Number));
+  if (!steps.length || steps.some((p) => p.length !== 2 || !p.every(Number.isFinite))) {
+    throw new UsageError(`--draw wants "dx,dy dx,dy ...", not ${JSON.stringify(offsets)}`);
+  }
+  await page.click('#draw-path');
+  const box = await page.locator('#view').boundingBox();
+  const [cx, cy] = [box.x + box.width / 2, box.y + box.height / 2];
+  await page.mouse.move(cx, cy);
+  await page.mouse.down();
+  for (const [dx, dy] of steps) await page.mouse.move(cx + dx, cy + dy, { steps: 25 });
+  await page.mouse.up();
+  return { start: [cx, cy], steps, path_line: (await page.textContent('#path-line')).trim() };
+}
+
+// The path the page sent and the root that came back; with opts.continue, a second Generate continuing it.
+async function readControl(page, response, report, opts, answered) {
+  const sent = JSON.parse(response.request().postData() || '{}');
+  report.sent_path = sent.path ?? null;
+  report.sent_facing = sent.facing ?? false;
+  const first = response.ok() ? (await response.json()).motions[0] : null;
+  report.root = first ? first.joints.map((pose) => pose[0]) : null;
+  if (!opts.continue || !first) return;
+  report.last_poses = first.joints.slice(-5);
+  await page.waitForFunction(() => document.body.dataset.state === 'playing');
+  await page.check('#continue');
+  const [again] = await Promise.all([page.waitForResponse(answered), page.click('#generate')]);
+  const body = JSON.parse(again.request().postData() || '{}');
+  report.continue_from = body.continue_from ?? null;
+  report.continue_sent_path = body.path ?? null;
+  const answer = again.ok() ? await again.json() : null;
+  report.continued_poses = answer ? answer.motions[0].joints.slice(0, 5) : null;
+  report.placement = answer ? answer.placement : null;
+  await page.waitForFunction(() => ['playing', 'error'].includes(document.body.dataset.state));
 }
 
 // Space on the focused view pauses; a drag orbits and the wheel zooms (the paused frame looks different after

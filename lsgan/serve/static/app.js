@@ -1,6 +1,8 @@
 // The lsgan serve page: read /v1/info, send /v1/generate, play the motion in the viewer, offer its downloads.
 // document.body.dataset.state is "idle" | "loading" | "playing" | "error"; window.lsganViewer is the viewer's
-// {frame, frames, playing}, for people poking at the console and for the browser test.
+// {frame, frames, playing}, for people poking at the console and for the browser test. A path drawn on the ground
+// (Draw a path) goes with the next Generate as one point per frame; "continue" sends the motion shown as
+// continue_from instead.
 import { Viewer } from '/static/viewer.js';
 
 const $ = (id) => document.getElementById(id);
@@ -11,12 +13,16 @@ const ui = {
   seed: $('seed'), seedRandom: $('seed-random'), keyField: $('key-field'), key: $('api-key'),
   generate: $('generate'), error: $('error'), latency: $('latency'),
   glb: $('download-glb'), bvh: $('download-bvh'), canvas: $('view'), play: $('play'), frameLabel: $('frame-label'),
+  pathField: $('path-field'), draw: $('draw-path'), clearPath: $('clear-path'), pathLine: $('path-line'),
+  continue: $('continue'), facing: $('facing'),
 };
 
 let info = null;
 let fps = 20;
+let drawn = null;      // the drawn path, [[x, z], ...] metres from the origin
+let shownId = null;    // the id of the motion shown, for "continue"
 
-const viewer = new Viewer(ui.canvas, { onFrame: showFrame });
+const viewer = new Viewer(ui.canvas, { onFrame: showFrame, onPath: setPath });
 window.lsganViewer = viewer.status;
 viewer.setHint('Describe a motion and press Generate');
 
@@ -40,6 +46,57 @@ function showFrame(status) {
   if (status.frames && document.body.dataset.state !== 'loading' && document.body.dataset.state !== 'error') {
     setState(status.playing ? 'playing' : 'idle');
   }
+}
+
+function pathLength(points) {
+  let length = 0;
+  for (let k = 1; k < points.length; k++) {
+    length += Math.hypot(points[k][0] - points[k - 1][0], points[k][1] - points[k - 1][1]);
+  }
+  return length;
+}
+
+// The drawn path as one ground point per frame: evenly spaced along it over the motion's frames, to the millimetre.
+function perFrame(points, frames) {
+  const along = [0];
+  for (let k = 1; k < points.length; k++) {
+    along.push(along[k - 1] + Math.hypot(points[k][0] - points[k - 1][0], points[k][1] - points[k - 1][1]));
+  }
+  const total = along[along.length - 1];
+  const rows = [];
+  let k = 1;
+  for (let f = 0; f < frames; f++) {
+    const s = frames > 1 ? (total * f) / (frames - 1) : 0;
+    while (k < points.length - 1 && along[k] < s) k += 1;
+    const span = along[k] - along[k - 1];
+    const w = span > 0 ? Math.min(1, Math.max(0, (s - along[k - 1]) / span)) : 1;
+    rows.push([0, 1].map((i) => Number((points[k - 1][i] + w * (points[k][i] - points[k - 1][i])).toFixed(3))));
+  }
+  return rows;
+}
+
+function describePath() {
+  const frames = Number.parseInt(ui.frames.value, 10);
+  if (!drawn) {
+    ui.pathLine.textContent = '';
+    return;
+  }
+  const length = pathLength(drawn);
+  const speed = Number.isFinite(frames) && frames > 1 ? length / ((frames - 1) / fps) : NaN;
+  ui.pathLine.textContent = `${length.toFixed(2)} m` + (Number.isFinite(speed) ? `, ${speed.toFixed(2)} m/s` : '')
+    + (info && info.control ? ` (this model goes up to ${info.control.max_speed_m_s.toFixed(1)} m/s)` : '');
+}
+
+function setPath(points) {
+  drawn = points && points.length > 1 ? points : null;
+  viewer.setPath(drawn);
+  ui.clearPath.disabled = !drawn || ui.continue.checked;
+  describePath();
+}
+
+function setDrawing(on) {
+  ui.draw.setAttribute('aria-pressed', String(on));
+  viewer.setDrawing(on);
 }
 
 function apiKey() { return sessionStorage.getItem(KEY_STORE) || ''; }
@@ -98,6 +155,7 @@ async function loadInfo() {
   ui.frames.max = info.max_frames;
   ui.frames.value = info.default_frames;
   updateSeconds();
+  ui.pathField.hidden = !info.control;
   ui.modelLine.textContent = `${action ? 'Action' : 'Text'}-conditioned model · `
     + `${info.min_frames}–${info.max_frames} frames at ${fps} fps`;
   if (info.skeleton) viewer.setSkeleton(info.skeleton);
@@ -136,6 +194,16 @@ async function download(event) {
   }
 }
 
+// How far the motion is from its constraints, as the server measured it.
+function missed(control) {
+  if (!control) return '';
+  const cm = (m) => `${(100 * m.max).toFixed(1)} cm`;
+  const parts = [];
+  if (control.path_m) parts.push(`path missed by ${cm(control.path_m)} at most`);
+  if (control.keyframes_m) parts.push(`keyframes by ${cm(control.keyframes_m)}`);
+  return parts.length ? ` · ${parts.join(', ')}` : '';
+}
+
 function ms(x) { return typeof x === 'number' ? `${x < 10 ? x.toFixed(1) : Math.round(x)} ms` : '–'; }
 
 async function generate() {
@@ -153,6 +221,11 @@ async function generate() {
     const frames = Number.parseInt(ui.frames.value, 10);
     if (Number.isFinite(frames)) body.frames = frames;
     if (!ui.seedRandom.checked && ui.seed.value.trim() !== '') body.seed = Number(ui.seed.value);
+    if (ui.continue.checked && shownId) body.continue_from = shownId;
+    else if (drawn && Number.isFinite(frames)) {
+      body.path = perFrame(drawn, frames);
+      if (ui.facing.checked) body.facing = true;
+    }
 
     ui.latency.textContent = 'Generating…';
     const started = performance.now();
@@ -163,10 +236,14 @@ async function generate() {
     const motion = result.motions[0];
     const t = result.timings_ms || {};
     ui.latency.textContent = `Round trip ${ms(roundTrip)} · server ${ms(t.total)} (queue ${ms(t.queue)}, `
-      + `text ${ms(t.text)}, generator ${ms(t.generator)}, decoder ${ms(t.decoder)}; batch of ${result.batch_size}) `
-      + `· seed ${result.seed}`;
+      + `text ${ms(t.text)}, generator ${ms(t.generator)}, decoder ${ms(t.decoder)}`
+      + `${t.control ? `, constraints ${ms(t.control)}` : ''}; batch of ${result.batch_size}) · seed ${result.seed}`
+      + missed(motion.control);
     if (ui.seedRandom.checked) ui.seed.value = result.seed;  // Untick "random" to get this motion again.
     fps = result.fps || fps;
+    shownId = motion.id;
+    ui.continue.disabled = false;
+    setDrawing(false);
     setDownload(ui.glb, motion.urls.glb);
     setDownload(ui.bvh, motion.urls.bvh);
     ui.play.disabled = false;
@@ -181,7 +258,15 @@ async function generate() {
 }
 
 ui.form.addEventListener('submit', (event) => { event.preventDefault(); generate(); });
-ui.frames.addEventListener('input', updateSeconds);
+ui.frames.addEventListener('input', () => { updateSeconds(); describePath(); });
+ui.draw.addEventListener('click', () => setDrawing(ui.draw.getAttribute('aria-pressed') !== 'true'));
+ui.clearPath.addEventListener('click', () => setPath(null));
+// Continuing sends no path: a drawn one stays in view (under the motion it made, where the continuation starts).
+ui.continue.addEventListener('change', () => {
+  ui.draw.disabled = ui.continue.checked;
+  ui.clearPath.disabled = ui.continue.checked || !drawn;
+  if (ui.continue.checked) setDrawing(false);
+});
 ui.seedRandom.addEventListener('change', () => { ui.seed.disabled = ui.seedRandom.checked; });
 ui.key.value = apiKey();
 ui.key.addEventListener('change', () => sessionStorage.setItem(KEY_STORE, ui.key.value.trim()));

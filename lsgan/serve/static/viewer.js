@@ -5,6 +5,10 @@
 // parent coloured by kinematic chain, joints as dots, and the bones' shadow on the ground. The camera follows the
 // root's horizontal position so walking motions stay in view. Everything is drawn back to front (painter's
 // algorithm), which is enough for a stick figure.
+//
+// Drawing mode (setDrawing(true)): the camera looks down on the start from above, and a drag draws a path on the
+// ground instead of orbiting (the pointer's ray cut with y = 0); the path, shifted to start at the origin where
+// every motion starts, goes to onPath and stays drawn in orange beside the motion.
 
 const FOV = 45 * Math.PI / 180;
 const NEAR = 0.05;
@@ -13,6 +17,9 @@ const GRID_HALF = 6;        // metres the grid reaches around the target
 const BONE_RADIUS = 0.022;  // metres: bones are drawn this thick at their distance
 const JOINT_RADIUS = 0.03;
 const DEFAULT_CAMERA = { azimuth: 35 * Math.PI / 180, elevation: 20 * Math.PI / 180, distance: 4 };
+const DRAW_CAMERA = { azimuth: Math.PI, elevation: 1.25, distance: 7 };  // above and behind the start, facing +z
+const DRAW_STEP = 0.02;     // metres between the points of a drawn path
+const PATH_COLOUR = 'rgba(230, 120, 20, 0.9)';
 const FALLBACK_COLOUR = '#3c3c3c';
 
 const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
@@ -23,10 +30,13 @@ const clamp = (x, lo, hi) => Math.min(hi, Math.max(lo, x));
 
 export class Viewer {
   /** @param {HTMLCanvasElement} canvas  @param {{onFrame?: (status) => void}} options */
-  constructor(canvas, { onFrame } = {}) {
+  constructor(canvas, { onFrame, onPath } = {}) {
     this.canvas = canvas;
     this.ctx = canvas.getContext('2d');
     this.onFrame = onFrame || (() => {});
+    this.onPath = onPath || (() => {});
+    this.drawing = false;     // drawing mode: a drag draws a path
+    this.drawn = null;        // the drawn path: [[x, z], ...] from the origin, metres
     // What the page (and its browser test) can read; updated in place while playing.
     this.status = { frame: 0, frames: 0, playing: false };
     this.joints = null;
@@ -81,18 +91,64 @@ export class Viewer {
 
   toggle() { this.setPlaying(!this.status.playing); }
 
-  resetCamera() { this.camera = { ...DEFAULT_CAMERA }; this.dirty = true; }
+  resetCamera() { this.camera = { ...(this.drawing ? DRAW_CAMERA : DEFAULT_CAMERA) }; this.dirty = true; }
+
+  /** Drawing mode on or off: on, the camera looks down on the start and a drag draws a path. */
+  setDrawing(on) {
+    this.drawing = Boolean(on);
+    this.canvas.classList.toggle('drawing', this.drawing);
+    this.resetCamera();
+  }
+
+  /** The drawn path ([[x, z], ...] from the origin) or null; shown in orange on the ground. */
+  setPath(points) { this.drawn = points && points.length > 1 ? points : null; this.dirty = true; }
+
+  // The ground point (y = 0) under a pointer event, or null when its ray does not go down to the ground.
+  groundAt(event) {
+    const rect = this.canvas.getBoundingClientRect();
+    const dpr = window.devicePixelRatio || 1;
+    const height = Math.max(1, Math.round(this.canvas.clientHeight * dpr));
+    const width = Math.max(1, Math.round(this.canvas.clientWidth * dpr));
+    const cam = this.view(height);
+    const px = (event.clientX - rect.left) * dpr - width / 2;
+    const py = height / 2 - (event.clientY - rect.top) * dpr;
+    const ray = [0, 1, 2].map((k) => cam.forward[k] * cam.focal + cam.right[k] * px + cam.up[k] * py);
+    if (ray[1] >= -1e-9) return null;
+    const t = -cam.eye[1] / ray[1];
+    return [cam.eye[0] + t * ray[0], cam.eye[2] + t * ray[2]];
+  }
 
   listen() {
     const c = this.canvas;
     let last = null;
-    c.addEventListener('pointerdown', (e) => { last = [e.clientX, e.clientY]; c.setPointerCapture(e.pointerId); });
+    let stroke = null;
+    c.addEventListener('pointerdown', (e) => {
+      last = [e.clientX, e.clientY];
+      c.setPointerCapture(e.pointerId);
+      if (this.drawing) {
+        const p = this.groundAt(e);
+        stroke = p ? [p] : null;
+      }
+    });
     c.addEventListener('pointermove', (e) => {
       if (!last) return;
-      this.orbit((e.clientX - last[0]) * 0.008, (e.clientY - last[1]) * 0.008);
+      if (this.drawing) {
+        const p = stroke && this.groundAt(e);
+        const end = stroke && stroke[stroke.length - 1];
+        if (p && Math.hypot(p[0] - end[0], p[1] - end[1]) >= DRAW_STEP) {
+          stroke.push(p);
+          this.setPath(stroke.map(([x, z]) => [x - stroke[0][0], z - stroke[0][1]]));
+        }
+      } else {
+        this.orbit((e.clientX - last[0]) * 0.008, (e.clientY - last[1]) * 0.008);
+      }
       last = [e.clientX, e.clientY];
     });
-    const end = () => { last = null; };
+    const end = () => {
+      if (stroke) this.onPath(this.drawn);
+      last = null;
+      stroke = null;
+    };
     c.addEventListener('pointerup', end);
     c.addEventListener('pointercancel', end);
     c.addEventListener('wheel', (e) => {
@@ -135,8 +191,8 @@ export class Viewer {
 
   // The camera: its eye, orthonormal axes and focal length in pixels, for a canvas of the given height.
   view(height) {
-    const pose = this.joints ? this.joints[this.status.frame] : null;
-    const target = pose ? [pose[0][0], this.targetHeight, pose[0][2]] : [0, 0.9, 0];
+    const pose = this.joints && !this.drawing ? this.joints[this.status.frame] : null;
+    const target = pose ? [pose[0][0], this.targetHeight, pose[0][2]] : [0, this.drawing ? 0 : 0.9, 0];
     const { azimuth, elevation, distance } = this.camera;
     const eye = [target[0] + distance * Math.cos(elevation) * Math.sin(azimuth),
       target[1] + distance * Math.sin(elevation), target[2] + distance * Math.cos(elevation) * Math.cos(azimuth)];
@@ -195,6 +251,12 @@ export class Viewer {
       line([cx - GRID_HALF, 0, z], [cx + GRID_HALF, 0, z], Math.abs(z) < 1e-6 ? '#a9b1b9' : '#d5dade', thin);
     }
     ctx.globalAlpha = 1;
+    if (this.drawn) {
+      for (let t = 1; t < this.drawn.length; t++) {
+        const [a, b] = [this.drawn[t - 1], this.drawn[t]];
+        line([a[0], 0.002, a[1]], [b[0], 0.002, b[1]], PATH_COLOUR, 4 * thin);
+      }
+    }
 
     if (!this.joints) {
       if (this.hint) {
