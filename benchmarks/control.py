@@ -9,8 +9,8 @@ captioned) are drawn; each caption is generated at its window's length from the 
 - ``keyframes``: the real window's whole pose (22 joints) at three frames: a third, two thirds, the last;
 - ``joints``: some joints of the real window (the head and both wrists) at a third and two thirds: keyframes that
   set some joints, completed by inverse kinematics (lsgan.motion.ik);
-- ``path, facing``: the real root path with ``--facing`` (the body turned along the path's direction of travel);
-- ``path, not steered`` and ``keyframes, not steered``: those constraints met without the optimisation (0 steps),
+- ``path-facing``: the real root path with ``--facing`` (the body turned along the path's direction of travel);
+- ``path-unsteered`` and ``keyframes-unsteered``: those constraints met without the optimisation (0 steps),
   which is what the ONNX route does (onnxruntime has no gradients);
 - ``continue``: a continuation of the window's first half (``generate --continue``), placed where it ends.
 
@@ -50,7 +50,7 @@ from lsgan.motion.quality import quality_metrics
 FAR = 0.5  # m: OmniControl's threshold for a trajectory or location failure
 SOME_JOINTS = (15, 20, 21)  # the ``joints`` row's: head, left wrist, right wrist
 UNSTEERED = ControlSettings(noise_steps=0, latent_steps=0)
-KINDS = ("free", "path", "path, facing", "keyframes", "joints", "path, not steered", "keyframes, not steered")
+KINDS = ("free", "path", "path-facing", "keyframes", "joints", "path-unsteered", "keyframes-unsteered")
 
 
 def constraint_sets(joints: list[np.ndarray]) -> dict[str, list[Constraints]]:
@@ -64,8 +64,8 @@ def constraint_sets(joints: list[np.ndarray]) -> dict[str, list[Constraints]]:
         out["path"].append(Constraints(T, path=j[:, 0, [0, 2]]))
         out["keyframes"].append(Constraints(T, keyframes={f: j[f] for f in (T // 3, 2 * T // 3, T - 1)}))
         out["joints"].append(Constraints(T, keyframes={f: some[f] for f in (T // 3, 2 * T // 3)}))
-        out["path, facing"].append(Constraints(T, path=j[:, 0, [0, 2]], facing=True))
-    out["path, not steered"], out["keyframes, not steered"] = out["path"], out["keyframes"]
+        out["path-facing"].append(Constraints(T, path=j[:, 0, [0, 2]], facing=True))
+    out["path-unsteered"], out["keyframes-unsteered"] = out["path"], out["keyframes"]
     return out
 
 
@@ -111,7 +111,7 @@ def real_velocity_jump(joints: list[np.ndarray]) -> float:
 
 
 def errors(kind: str, motions, constraints) -> dict:
-    kind = kind.removesuffix(", not steered").removesuffix(", facing")
+    kind = kind.removesuffix("-unsteered").removesuffix("-facing")
     if kind == "path":
         d = [np.linalg.norm(m.joints[:, 0][:, [0, 2]] - c.path, axis=-1) for m, c in zip(motions, constraints)]
         facing = [measure(m.joints, c).get("facing_deg") for m, c in zip(motions, constraints)]
@@ -207,7 +207,7 @@ def main() -> None:
     report = {"machine": platform.machine(), "cpus": os.cpu_count(), "threads": torch.get_num_threads(),
               "load_before": os.getloadavg(), "motions": len(requests), "gan": args.gan, "vae": args.vae, "rows": {}}
     for kind in kinds:
-        cons, settings = sets[kind], UNSTEERED if kind.endswith("not steered") else None
+        cons, settings = sets[kind], UNSTEERED if kind.endswith("-unsteered") else None
         t0 = time.perf_counter()
         motions, per_motion = run_kind(loaded, requests, noise, None if kind == "free" else cons, 32,
                                        settings=settings)

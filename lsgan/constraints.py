@@ -331,21 +331,39 @@ def _warp_field(miss: dict[int, np.ndarray], frames: int, fade: int) -> np.ndarr
     return out
 
 
+RIGID_PASSES = 2  # corrections of the warp for what making the motion rigid moves (measured in docs/control.md)
+
+
 def meet(features: np.ndarray, c: Constraints) -> np.ndarray:
-    """Features (T, 263) that meet ``c``: the root closed onto its points and facings (:func:`close_root`), keyframes
-    that set some joints completed into whole poses by inverse kinematics on the motion's own pose there
-    (:func:`lsgan.motion.ik.reach_pose`), then every keyframe warped in (:func:`warp_poses`). The last two stages of
-    control, shared by every runtime."""
+    """Features (T, 263) whose motion of record meets ``c``: the root closed onto its points and facings
+    (:func:`close_root`); keyframes that set some joints completed into whole poses by inverse kinematics on the
+    motion's own rigid pose there (:func:`lsgan.motion.ik.reach_pose`); every keyframe warped in
+    (:func:`warp_poses`); then, :data:`RIGID_PASSES` times, the warp's targets moved by what the rigid fit every
+    output goes through (:func:`lsgan.motion.rigid.make_rigid`) still misses of the set joints, so that the rigid
+    joints, not only the decoded ones, reach them. The last stages of control, shared by every runtime."""
     from lsgan.data.features import recover_from_ric
     from lsgan.motion.ik import reach_pose
+    from lsgan.motion.rigid import make_rigid, rigid_offsets
 
     closed = close_root(features, c.root_points(), c.root_yaws())
-    partial = [f for f, pose in c.keyframes.items() if np.isnan(pose).any()]
-    keys = dict(c.keyframes)
-    if partial:
-        joints = recover_from_ric(closed.astype(np.float64))
-        keys.update({f: reach_pose(joints[f], c.keyframes[f]) for f in partial})
-    return warp_poses(closed, keys, c.fade or WARP_FRAMES)
+    if not c.keyframes:
+        return closed
+    fade = c.fade or WARP_FRAMES
+
+    def rigid(f: np.ndarray) -> np.ndarray:
+        return make_rigid(recover_from_ric(f.astype(np.float64))).astype(np.float64)
+
+    now = rigid(closed)
+    offsets = rigid_offsets(now)
+    want = {f: reach_pose(now[f], p, offsets) if np.isnan(p).any() else np.asarray(p, np.float64)
+            for f, p in c.keyframes.items()}
+    keys = dict(want)
+    out = warp_poses(closed, keys, fade)
+    for _ in range(RIGID_PASSES):
+        now = rigid(out)
+        keys = {f: keys[f] + (want[f] - now[f]) for f in keys}
+        out = warp_poses(closed, keys, fade)
+    return out
 
 
 def measure(joints: np.ndarray, c: Constraints) -> dict:

@@ -9,36 +9,76 @@ from __future__ import annotations
 
 import numpy as np
 
-from lsgan.data.skeleton import KINEMATIC_CHAIN, NUM_JOINTS, PARENTS
+from lsgan.data.skeleton import NUM_JOINTS, PARENTS
 
 ITERATIONS = 64  # FABRIK passes at most; a reachable target is met to TOLERANCE within a few dozen
 TOLERANCE = 1e-6  # metres
+REACH = 0.99  # of a chain's length: how far a moved body lets it stretch (a straight chain has no bend left)
+PROJECTIONS = 4  # rounds of solving and fitting the rigid skeleton's layout (reach_pose's ``offsets``)
+# The chains solved, each from a joint held where it hangs: the children of the two branching joints (pelvis: hips
+# and spine; spine3: neck and collars) keep the layout the rigid fit gives them (lsgan.motion.rigid), so a solved
+# pose is one the motion of record can take. Spine first (it carries the arms), a collar from the spine, then arms
+# and legs.
+CHAINS = ((3, 6, 9, 12, 15), (3, 6, 9, 13), (3, 6, 9, 14), (13, 16, 18, 20), (14, 17, 19, 21), (1, 4, 7, 10),
+          (2, 5, 8, 11))
+LEGS = ((1, 4, 7, 10), (2, 5, 8, 11))
+HELD = (1, 2, 3)  # the pelvis's children: set, they move the whole body (when the root is free)
 
 
-def reach_pose(pose: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """``pose`` (22, 3) moved so that every set coordinate of ``target`` (22, 3), NaN = free, is met: a set root
-    moves the whole pose; along each chain (legs, spine, arms, base first) the joints up to each set one are
-    solved by FABRIK with the chain's base held, and the joints hanging from a moved joint move with it. A target
-    out of reach is approached in a straight line (the miss is what :func:`lsgan.constraints.measure` reports)."""
-    out = np.array(pose, np.float64)
-    target = np.asarray(target, np.float64)
+def reach_pose(pose: np.ndarray, target: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
+    """``pose`` (22, 3) moved so that every set coordinate of ``target`` (22, 3), NaN = free, is met
+    (:func:`_solve`). ``offsets``: the rigid skeleton the pose will be fitted to (:func:`lsgan.motion.rigid.
+    rigid_offsets`); then solving alternates with fitting it, so that the fit moves the solved joints little."""
+    from lsgan.motion.rigid import pose as rigid_pose
+
+    out = _solve(np.array(pose, np.float64), np.asarray(target, np.float64))
+    for _ in range(PROJECTIONS if offsets is not None else 0):
+        out = _solve(rigid_pose(out[None], offsets)[0], np.asarray(target, np.float64))
+    return out
+
+
+def _solve(out: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """A set root moves the whole pose, and so do set hips or spine (the mean of their misses, when the root is
+    free); along each chain of :data:`CHAINS` the joints up to each set one are solved by FABRIK with the chain's
+    first joint held, and the joints hanging from a moved joint move with it. When the root is free and a spine
+    joint is out of the spine's reach, the whole body moves by the excess and the legs are solved back onto where
+    the feet were. A target still out of reach is approached in a straight line."""
     if target.shape != (NUM_JOINTS, 3) or out.shape != (NUM_JOINTS, 3):
         raise ValueError(f"a pose and its target are ({NUM_JOINTS}, 3), not {out.shape} and {target.shape}")
-    if not np.isnan(target[0]).all():
+    free_root = bool(np.isnan(target[0]).all())
+    if not free_root:
         out += np.where(np.isnan(target[0]), 0.0, target[0] - out[0])
-    for chain in KINEMATIC_CHAIN:
+    elif not np.isnan(target[list(HELD)]).all():
+        miss = target[list(HELD)] - out[list(HELD)]
+        on = ~np.isnan(miss)
+        out += np.where(on, miss, 0.0).sum(0) / np.maximum(on.sum(0), 1)
+    planted = out.copy()  # the feet's places, kept when the body has to move
+    for chain in CHAINS:
+        leg = chain in LEGS
+        goals = {j: np.where(np.isnan(target[j]), out[j], target[j]) for j in chain[1:] if not np.isnan(target[j]).all()}
+        if leg and chain[-1] not in goals and not np.allclose(out[0], planted[0]):
+            goals[chain[-1]] = planted[chain[-1]]  # the body moved: the foot stays where it was
         base = 0
         for k in range(1, len(chain)):
-            j = chain[k]
-            if np.isnan(target[j]).all():
+            if chain[k] not in goals:
                 continue
-            goal = np.where(np.isnan(target[j]), out[j], target[j])
             segment = list(chain[base:k + 1])
+            if free_root and chain[0] == 3 and base == 0:  # the spine: the body moves, the feet stay
+                out += _excess(out[segment], goals[chain[k]])
             before = out.copy()
-            out[segment] = fabrik(out[segment], goal)
+            out[segment] = fabrik(out[segment], goals[chain[k]])
             _carry(out, before, set(segment))
             base = k
     return out
+
+
+def _excess(points: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """How far a chain's base must move towards ``goal`` for its end to reach it, a little bent (nothing when it
+    already can)."""
+    reach = REACH * np.linalg.norm(np.diff(points, axis=0), axis=-1).sum()
+    d = goal - points[0]
+    n = np.linalg.norm(d)
+    return d / n * (n - reach) if n > reach else np.zeros(3)
 
 
 def fabrik(points: np.ndarray, goal: np.ndarray) -> np.ndarray:
