@@ -17,17 +17,21 @@ from pathlib import Path
 import numpy as np
 
 from lsgan.data.features import RIC, ROOT_Y, _qrot_yaw, _xp, recover_root
-from lsgan.data.skeleton import FACE_JOINTS, FPS, JOINT_NAMES, NUM_JOINTS
+from lsgan.data.skeleton import FACE_JOINTS, FPS, JOINT_NAMES, NUM_JOINTS, PARENTS
 
 START_TOLERANCE = 1e-3  # m: a path's or keyframe root's point on frame 0 is the origin within this
+GROUND_SLACK = 0.25  # m: a keyframe joint lower than this under the ground (y = 0) is refused (a generated
+# motion's feet, which continuations take as keyframes, can be centimetres below it)
 MAX_COORD = 1e4  # m: coordinates beyond 10 km are refused (float32 keeps millimetres up to about there)
 
 
 @dataclass
 class Constraints:
     """What one motion of ``frames`` frames must do. ``path``: (frames, 2) ground positions (x, z) of the root, NaN
-    rows free; ``keyframes``: {frame: (22, 3) joint positions, NaN entries free}; ``origin``: where they came from,
-    for messages (e.g. the file a continuation continues)."""
+    rows free; ``keyframes``: {frame: (22, 3) joint positions, NaN entries free}; ``poses``: {frame: (22, 3) a
+    whole pose to take wherever the motion is then: in its facing frame (root over the origin, facing +z, y up
+    from the ground; :func:`facing_frame`), placed at the motion's root and facing on that frame}; ``origin``:
+    where they came from, for messages (e.g. the file a continuation continues)."""
 
     frames: int
     path: np.ndarray | None = None
@@ -35,6 +39,7 @@ class Constraints:
     fade: int = 0  # frames over which whole poses' remaining miss fades out (warp_poses); 0: WARP_FRAMES
     origin: str = ""
     facing: bool = False  # the root faces along the path where it moves (path_yaws)
+    poses: dict[int, np.ndarray] = field(default_factory=dict)  # {frame: (22, 3) whole pose in its facing frame}
 
     def __post_init__(self) -> None:
         self.frames = _whole_number(self.frames, "frames")
@@ -52,16 +57,31 @@ class Constraints:
             f = _whole_number(f, "a keyframe's frame")
             pose = np.array(pose, np.float32)
             if not 0 <= f < self.frames:
-                raise ValueError(f"keyframe {f} is beyond the motion's {self.frames} frames (0..{self.frames - 1})")
+                raise ValueError(f"keyframe {f} is not a frame of the motion: its {self.frames} frames are "
+                                 f"0..{self.frames - 1}")
             if pose.shape != (NUM_JOINTS, 3):
                 raise ValueError(f"keyframe {f}: a pose is {NUM_JOINTS} joints x 3 coordinates, not {pose.shape}")
             if np.isnan(pose).all():
                 raise ValueError(f"keyframe {f} sets no joint")
             _check_coordinates(pose, f"keyframe {f}")
+            low = np.nan_to_num(pose[:, 1], nan=0.0)
+            if low.min() < -GROUND_SLACK:
+                raise ValueError(f"keyframe {f}: {JOINT_NAMES[int(np.argmin(low))]} at y = {low.min():.2f} m is below "
+                                 f"the ground (y = 0; {GROUND_SLACK * 100:.0f} cm of slack)")
             if f == 0:
                 _check_start(pose[0, [0, 2]], "keyframe 0's root")
             keyframes[f] = pose
         self.keyframes = keyframes
+        poses = {}
+        for f, pose in self.poses.items():
+            f = _whole_number(f, "a pose's frame")
+            if not 0 <= f < self.frames:
+                raise ValueError(f"pose {f} is not a frame of the motion: its {self.frames} frames are "
+                                 f"0..{self.frames - 1}")
+            if f in keyframes:
+                raise ValueError(f"frame {f} has a keyframe and a pose: give one")
+            poses[f] = whole_pose(pose)
+        self.poses = poses
         if self.facing and self.path is None:
             raise ValueError("facing along the path needs a path")
 
@@ -91,7 +111,8 @@ class Constraints:
 
         return {"frames": self.frames, "path": None if self.path is None else plain(self.path),
                 "keyframes": {str(f): plain(p) for f, p in self.keyframes.items()}, "fade": self.fade,
-                "origin": self.origin, "facing": self.facing}
+                "origin": self.origin, "facing": self.facing,
+                "poses": {str(f): p.tolist() for f, p in self.poses.items()}}
 
     @classmethod
     def from_record(cls, record: dict) -> Constraints:
@@ -100,7 +121,8 @@ class Constraints:
 
         return cls(record["frames"], path=None if record["path"] is None else array(record["path"]),
                    keyframes={int(f): array(p) for f, p in record["keyframes"].items()}, fade=record["fade"],
-                   origin=record["origin"], facing=record["facing"])
+                   origin=record["origin"], facing=record["facing"],
+                   poses={int(f): np.array(p, np.float64) for f, p in record["poses"].items()})
 
     def describe(self, settings=None) -> dict:
         """What a manifest records: the path's set frames and points, the keyframes' set joints, the settings."""
@@ -113,6 +135,8 @@ class Constraints:
         out["keyframes"] = {str(f): {str(j): [None if np.isnan(v) else float(v) for v in pose[j]]
                                      for j in range(NUM_JOINTS) if not np.isnan(pose[j]).all()}
                             for f, pose in sorted(self.keyframes.items())}
+        if self.poses:
+            out["poses"] = {str(f): pose.tolist() for f, pose in sorted(self.poses.items())}
         if settings is not None:
             out["settings"] = asdict(settings)
         return out
@@ -185,6 +209,14 @@ def facing_yaw(joints):
     across = _across(j)
     # forward = (0, 1, 0) x across = (across_z, 0, -across_x); + 0.0 turns -0.0 into 0.0 (atan2(0, -0.0) is pi)
     return _xp(j).atan2(across[..., 2] + 0.0, -across[..., 0] + 0.0)
+
+
+def facing_frame(poses):
+    """Poses (..., 22, 3), numpy or torch, with the root over the origin and the facing turned onto +z (heights
+    kept): what a pose is wherever it stands."""
+    shifted = poses - poses[..., :1, :] * (poses.new_tensor([1.0, 0.0, 1.0]) if not isinstance(poses, np.ndarray)
+                                           else np.array([1.0, 0.0, 1.0]))
+    return turn(shifted, -facing_yaw(poses)[..., None])
 
 
 def has_facing(pose: np.ndarray) -> bool:
@@ -283,27 +315,60 @@ WARP_FRAMES = 5  # frames over which a keyframe's remaining pose miss fades out 
 
 
 def warp_poses(features: np.ndarray, keyframes: dict[int, np.ndarray], fade: int = WARP_FRAMES) -> np.ndarray:
-    """Features (T, 263) whose root-relative joints (and root height) reach every whole-pose keyframe exactly: the
-    miss at each keyframe, in the root's frame, is added to the frames around it (motion warping, Witkin and
-    Popovic 1995): linear between keyframes up to 2 * ``fade`` frames apart, fading out over ``fade`` frames with
-    a raised cosine beyond. Run after :func:`close_root`, which puts the root's ground position and facing there;
-    keyframes that leave a joint free are the optimisation's alone."""
+    """Features (T, 263) whose root-relative joints (and root height) reach every whole-pose keyframe exactly, by
+    motion warping (Witkin and Popovic 1995) of the bones: at each keyframe, each bone's turn onto the keyframe's
+    (a rotation vector, in the root's frame) and its length ratio, with the root height's miss, are spread to the
+    frames around it (linear between keyframes up to 2 * ``fade`` frames apart, fading out over ``fade`` frames
+    with a raised cosine beyond); the joints are then rebuilt from the root bone by bone. Turning bones rather than
+    moving joints keeps limbs their length between keyframes: a raised arm swings up, it does not pass through
+    the shoulder. Run after :func:`close_root`, which puts the root's ground position and facing there; keyframes
+    that leave a joint free are completed first (:func:`meet`)."""
     whole = sorted(f for f, pose in keyframes.items() if not np.isnan(pose).any())
     f = np.array(features, dtype=np.float64)
     if not whole:
         return np.asarray(features, np.float32)
     angle, root = recover_root(f)
-    ric = f[:, RIC].reshape(len(f), NUM_JOINTS - 1, 3)
+    local = np.concatenate([np.zeros((len(f), 1, 3)), f[:, RIC].reshape(len(f), NUM_JOINTS - 1, 3)], axis=1)
+    local[:, 0, 1] = f[:, ROOT_Y.start]  # (T, 22, 3): the joints in the root's frame, the root over the origin
+    parents = list(PARENTS[1:])
+    bones = local[:, 1:] - local[:, parents]  # (T, 21, 3)
     miss = {}
     for k in whole:
-        pose = np.asarray(keyframes[k], np.float64)
-        rel = pose[1:] - root[k] * [1.0, 0.0, 1.0]
-        want = _qrot_yaw(np.full(NUM_JOINTS - 1, angle[k]), rel, inverse=False)
-        miss[k] = np.concatenate([[pose[0, 1] - f[k, ROOT_Y.start]], (want - ric[k]).ravel()])
-    shift = _warp_field(miss, len(f), fade)  # (T, 1 + 63)
-    f[:, ROOT_Y.start] += shift[:, 0]
-    f[:, RIC] += shift[:, 1:]
+        want = _qrot_yaw(np.full(NUM_JOINTS, angle[k]), np.asarray(keyframes[k], np.float64) - root[k] * [1.0, 0.0, 1.0],
+                         inverse=False)
+        goal = want[1:] - want[parents]
+        ratio = np.log(np.maximum(np.linalg.norm(goal, axis=-1), 1e-9) / np.maximum(np.linalg.norm(bones[k], axis=-1),
+                                                                                   1e-9))
+        miss[k] = np.concatenate([[want[0, 1] - local[k, 0, 1]], _turn_between(bones[k], goal).ravel(), ratio])
+    shift = _warp_field(miss, len(f), fade)  # (T, 1 + 63 + 21)
+    turned = _rotate(bones, shift[:, 1:64].reshape(len(f), NUM_JOINTS - 1, 3)) * np.exp(shift[:, 64:])[..., None]
+    out = local.copy()
+    out[:, 0, 1] += shift[:, 0]
+    for j in range(1, NUM_JOINTS):  # PARENTS lists every parent before its children
+        out[:, j] = out[:, PARENTS[j]] + turned[:, j - 1]
+    f[:, ROOT_Y.start] = out[:, 0, 1]
+    f[:, RIC] = out[:, 1:].reshape(len(f), -1)
     return f.astype(np.float32)
+
+
+def _turn_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of the shortest turns taking directions ``a`` (..., 3) onto ``b``; a half turn
+    about an axis across ``a``."""
+    ua = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+    ub = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    axis = np.cross(ua, ub)
+    sin, cos = np.linalg.norm(axis, axis=-1), np.sum(ua * ub, axis=-1)
+    across = np.cross(ua, np.where(np.abs(ua[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
+    axis = np.where((sin > 1e-9)[..., None], axis, across)
+    axis /= np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
+    return axis * np.arctan2(sin, cos)[..., None]
+
+
+def _rotate(v: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Vectors (..., 3) turned by rotation vectors (..., 3) (Rodrigues' formula)."""
+    angle = np.linalg.norm(turn, axis=-1, keepdims=True)
+    k = turn / np.maximum(angle, 1e-12)
+    return v * np.cos(angle) + np.cross(k, v) * np.sin(angle) + k * np.sum(k * v, -1, keepdims=True) * (1 - np.cos(angle))
 
 
 def _warp_field(miss: dict[int, np.ndarray], frames: int, fade: int) -> np.ndarray:
@@ -342,11 +407,10 @@ def meet(features: np.ndarray, c: Constraints) -> np.ndarray:
     output goes through (:func:`lsgan.motion.rigid.make_rigid`) still misses of the set joints, so that the rigid
     joints, not only the decoded ones, reach them. The last stages of control, shared by every runtime."""
     from lsgan.data.features import recover_from_ric
-    from lsgan.motion.ik import reach_pose
-    from lsgan.motion.rigid import make_rigid, rigid_offsets
+    from lsgan.motion.rigid import make_rigid
 
     closed = close_root(features, c.root_points(), c.root_yaws())
-    if not c.keyframes:
+    if not c.keyframes and not c.poses:
         return closed
     fade = c.fade or WARP_FRAMES
 
@@ -354,9 +418,19 @@ def meet(features: np.ndarray, c: Constraints) -> np.ndarray:
         return make_rigid(recover_from_ric(f.astype(np.float64))).astype(np.float64)
 
     now = rigid(closed)
-    offsets = rigid_offsets(now)
-    want = {f: reach_pose(now[f], p, offsets) if np.isnan(p).any() else np.asarray(p, np.float64)
-            for f, p in c.keyframes.items()}
+    want = _completed(c.keyframes, now)
+    want.update(_placed(c.poses, now))
+    if any(np.abs(w[0, [0, 2]] - now[f, 0, [0, 2]]).max() > 1e-4 for f, w in want.items()):
+        # the inverse kinematics moved the body under a joint out of its reach: the root goes there too, and stays
+        # where it is on the other keyframes
+        points = c.root_points()
+        points = np.full((c.frames, 2), np.nan) if points is None else points.astype(np.float64)
+        for f, w in want.items():
+            points[f] = w[0, [0, 2]]
+        closed = close_root(features, points, c.root_yaws())
+        now = rigid(closed)
+        want = _completed(c.keyframes, now)
+        want.update(_placed(c.poses, now))
     keys = dict(want)
     out = warp_poses(closed, keys, fade)
     for _ in range(RIGID_PASSES):
@@ -366,9 +440,44 @@ def meet(features: np.ndarray, c: Constraints) -> np.ndarray:
     return out
 
 
+def on_skeleton(pose: np.ndarray, rigid: np.ndarray) -> np.ndarray:
+    """A pose (22, 3) of any skeleton (a BVH rig's) retargeted onto a rigid motion's (T, 22, 3): its bone
+    directions at the motion's bone lengths and branching layout (lsgan.motion.rigid.pose), the lowest foot kept at
+    the pose's own height."""
+    from lsgan.motion.rigid import pose as rigid_pose, rigid_offsets
+
+    src = np.asarray(pose, np.float64)
+    out = rigid_pose(src[None], rigid_offsets(np.asarray(rigid, np.float64)))[0]
+    feet = [7, 8, 10, 11]
+    return out + [0.0, src[feet, 1].min() - out[feet, 1].min(), 0.0]
+
+
+def _placed(poses: dict[int, np.ndarray], rigid: np.ndarray) -> dict[int, np.ndarray]:
+    """Poses (facing frame, any skeleton) as whole keyframes: on the rigid motion's skeleton (:func:`on_skeleton`),
+    where it stands and faces on their frames."""
+    out = {}
+    for f, pose in poses.items():
+        here = rigid[f]
+        out[f] = turn(on_skeleton(pose, rigid), np.full(NUM_JOINTS, float(facing_yaw(here)))) + here[0] * [1.0, 0.0, 1.0]
+    return out
+
+
+def _completed(keyframes: dict[int, np.ndarray], rigid: np.ndarray) -> dict[int, np.ndarray]:
+    """Whole poses for keyframes: those given whole as they are, the others completed by inverse kinematics on the
+    rigid motion's pose at their frame (:func:`lsgan.motion.ik.reach_pose`, fitted to its skeleton)."""
+    from lsgan.motion.ik import reach_pose
+    from lsgan.motion.rigid import rigid_offsets
+
+    offsets = rigid_offsets(rigid)
+    return {f: reach_pose(rigid[f], p, offsets) if np.isnan(p).any() else np.asarray(p, np.float64)
+            for f, p in keyframes.items()}
+
+
 def measure(joints: np.ndarray, c: Constraints) -> dict:
     """How far a motion's joints (T, 22, 3) are from ``c``, in metres: the root's ground distance to the path over
-    its set frames, and each keyframed joint's distance over its set coordinates; with ``facing``, the angle (deg)
+    its set frames, and each keyframed joint's distance over its set coordinates; for each pose, its joints' mean
+    distance in the facing frame (wherever the motion stands) from the pose on the motion's skeleton; with
+    ``facing``, the angle (deg)
     between the body's facing and the path's direction where it moves; mean and largest of each, absent when there
     is nothing of that kind to meet."""
     j = np.asarray(joints, np.float64)
@@ -384,6 +493,9 @@ def measure(joints: np.ndarray, c: Constraints) -> dict:
             diff = np.where(set_, j[f] - np.nan_to_num(pose), 0.0)
             d += list(np.linalg.norm(diff, axis=-1)[set_.any(-1)])
         out["keyframes_m"] = {"mean": float(np.mean(d)), "max": float(np.max(d))}
+    if c.poses:
+        d = [np.linalg.norm(facing_frame(j[f]) - on_skeleton(pose, j), axis=-1).mean() for f, pose in c.poses.items()]
+        out["poses_m"] = {"mean": float(np.mean(d)), "max": float(np.max(d))}
     if c.facing:
         want = path_yaws(c.path)
         on = ~np.isnan(want)
@@ -429,6 +541,8 @@ def path_from_rows(rows, frames: int, fps: float = FPS) -> np.ndarray:
     rows = np.asarray(rows, np.float64)
     if rows.ndim != 2 or rows.shape[1] not in (2, 3) or not len(rows):
         raise ValueError(f"rows of 2 or 3 numbers, got an array of shape {rows.shape}")
+    if len(rows) < 2:
+        raise ValueError("a path needs at least two points (its first is where the motion starts)")
     if not np.isfinite(rows).all() or (np.abs(rows) > MAX_COORD).any():
         raise ValueError(f"a number is NaN, infinite or beyond {MAX_COORD:.0f} (metres and seconds)")
     if rows.shape[1] == 2:
@@ -460,21 +574,52 @@ def _number(text: str) -> float:
     return float(text)
 
 
-def _numbers(value, where: str) -> list[float]:
-    """A JSON list of numbers (not booleans, strings or lists)."""
-    if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                              for v in value):
-        raise ValueError(f"{where} is not a list of numbers: {json.dumps(value)[:60]}")
-    return [float(v) for v in value]
+def _numbers(value, where: str, free: bool = False) -> list[float]:
+    """A JSON list of numbers (not booleans, strings or lists); with ``free``, null for a free coordinate (NaN)."""
+    def number(v) -> bool:
+        return (isinstance(v, (int, float)) and not isinstance(v, bool)) or (free and v is None)
+
+    if not isinstance(value, list) or not all(number(v) for v in value):
+        kind = "numbers (or null for a free coordinate)" if free else "numbers"
+        raise ValueError(f"{where} is not a list of {kind}: {json.dumps(value)[:60]}")
+    return [np.nan if v is None else float(v) for v in value]
+
+
+MAX_FILE_BYTES = 16 * 2**20  # a path or keyframe file larger than this is refused unread
+
+
+def _text(path: Path) -> str:
+    """A constraint file's text, read up to :data:`MAX_FILE_BYTES` (a byte-order mark, as spreadsheets write it,
+    is not data)."""
+    with open(path, "rb") as fh:
+        data = fh.read(MAX_FILE_BYTES + 1)
+    if len(data) > MAX_FILE_BYTES:
+        raise ValueError(f"larger than {MAX_FILE_BYTES // 2**20} MB: not a path or a pose")
+    return data.decode("utf-8-sig")
+
+
+def _json(text: str):
+    """Parsed JSON without NaN or Infinity (a free coordinate is null) and without a key given twice."""
+    def no_constant(name: str):
+        raise ValueError(f"{name} is not JSON (leave a coordinate free with null)")
+
+    def once(pairs: list) -> dict:
+        keys = [k for k, _ in pairs]
+        twice = next((k for k in keys if keys.count(k) > 1), None)
+        if twice is not None:
+            raise ValueError(f"{twice!r} is given twice")
+        return dict(pairs)
+
+    try:
+        return json.loads(text, parse_constant=no_constant, object_pairs_hook=once)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
 
 
 def _rows(path: Path) -> np.ndarray:
-    text = path.read_text(encoding="utf-8-sig")  # a byte-order mark, as spreadsheets write it, is not data
+    text = _text(path)
     if path.suffix.lower() == ".json":
-        try:
-            data = json.loads(text)
-        except RecursionError:
-            raise ValueError("JSON nested too deeply") from None
+        data = _json(text)
         return json_rows(data["points"] if isinstance(data, dict) and "points" in data else data)
     lines = [ln.split("#")[0].strip() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
@@ -517,14 +662,57 @@ def read_keyframe(spec: str, frames: int) -> tuple[int, np.ndarray]:
         raise FileNotFoundError(f"{path}: no such keyframe file")
     with reading(path, "a keyframe: a .npy of 22 joints x 3, or a .json of joint names to [x, y, z]"):
         if path.suffix.lower() == ".json":
-            try:
-                data = json.loads(path.read_text(encoding="utf-8-sig"))
-            except RecursionError:
-                raise ValueError("JSON nested too deeply") from None
-            pose = pose_from_json(data)
+            pose = pose_from_json(_json(_text(path)))
         else:
             pose = whole_pose(load_npy(path))
     return f, pose
+
+
+BVH_FRAME = re.compile(r"(?P<file>.+\.bvh(?:\.gz)?)@(?P<frame>[0-9]+)", re.IGNORECASE)
+
+
+def is_bvh_keyframe(spec: str) -> bool:
+    """Whether ``FRAME:FILE`` names a BVH file (its frame then follows the file: ``60:clip.bvh@120``)."""
+    file = spec.partition(":")[2].strip().lower()
+    return ".bvh" in file and (file.endswith((".bvh", ".bvh.gz")) or "@" in file)
+
+
+def read_bvh_pose(spec: str, frames: int, joint_map: str | None = None) -> tuple[int, np.ndarray]:
+    """``FRAME:FILE.bvh@K`` -> (frame, the whole pose of the BVH's frame K (counted from 0 at the file's own rate)
+    in its facing frame, :func:`facing_frame`): a pose the motion takes wherever it is on FRAME. The file's joints
+    go through ``joint_map`` (a preset name, or a JSON joint map file; by default the first preset that finds every
+    joint: lsgan.data.joint_maps), heights from the clip's floor (its lowest foot over all frames)."""
+    from lsgan.data.bvh import forward_kinematics, read_bvh
+    from lsgan.data.clip import ClipError
+    from lsgan.data.joint_maps import PRESETS, apply_joint_map, get_joint_map
+    from lsgan.errors import reading
+
+    frame, _, rest = spec.partition(":")
+    m = BVH_FRAME.fullmatch(rest.strip())
+    if not re.fullmatch(r"\s*[0-9]+\s*", frame) or m is None:
+        raise ValueError(f"a BVH keyframe is FRAME:FILE.bvh@BVH_FRAME (e.g. 60:clip.bvh@120), not {spec!r}")
+    f, path, k = int(frame), Path(m["file"]), int(m["frame"])
+    if not 0 <= f < frames:
+        raise ValueError(f"keyframe {f} ({spec}) is not a frame of the motion: its {frames} frames are 0..{frames - 1}")
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such BVH file")
+    bvh = read_bvh(path)
+    if not 0 <= k < len(bvh.motion):
+        raise ValueError(f"{path}: has {len(bvh.motion)} frames (0..{len(bvh.motion) - 1}), not a frame {k}")
+    maps = {joint_map: get_joint_map(joint_map, None) if joint_map in PRESETS else get_joint_map("bandai", joint_map)} \
+        if joint_map else PRESETS
+    tried = []
+    for name, jmap in maps.items():
+        try:
+            joints = apply_joint_map(forward_kinematics(bvh), bvh.names, jmap, str(path))
+            break
+        except ClipError as e:
+            tried.append(f"{name}: {str(e).split(': ', 1)[-1]}")
+    else:
+        raise ValueError(f"{path}: no joint map fits its joints ({'; '.join(tried)[:300]}); give --keyframe-map")
+    with reading(path, "a BVH pose"):
+        pose = joints[k] - [0.0, joints[:, [7, 8, 10, 11], 1].min(), 0.0]
+        return f, facing_frame(whole_pose(pose).astype(np.float64)).astype(np.float32)
 
 
 def whole_pose(pose) -> np.ndarray:
@@ -539,27 +727,36 @@ def whole_pose(pose) -> np.ndarray:
 
 
 def pose_from_json(data) -> np.ndarray:
-    """A pose (22, 3), NaN = free, from parsed JSON: {"joint name or index": [x, y, z], ...} for some joints, or
-    a list of the 22 joints' [x, y, z] (:func:`whole_pose`)."""
+    """A pose (22, 3), NaN = free, from parsed JSON: {"joint name or index": [x, y, z], ...} for some joints (a
+    coordinate null is free: {"head": [null, 1.7, null]} sets the head's height only), or a list of the 22 joints'
+    [x, y, z] (:func:`whole_pose`)."""
     if isinstance(data, list):
         return whole_pose(json_rows(data))
     if not isinstance(data, dict) or not data:
         raise ValueError("an object of joint names to [x, y, z], with at least one joint")
     pose = np.full((NUM_JOINTS, 3), np.nan)
+    named: dict[int, str] = {}
     for name, xyz in data.items():
-        values = _numbers(xyz, f"joint {name!r}")
+        values = _numbers(xyz, f"joint {name!r}", free=True)
         if len(values) != 3:
             raise ValueError(f"joint {name!r} has {len(values)} coordinates, not 3")
-        pose[_joint(name)] = values
+        j = _joint(name)
+        if j in named:
+            raise ValueError(f"joint {JOINT_NAMES[j]} is set twice (as {named[j]!r} and {name!r})")
+        named[j] = name
+        if np.isnan(values).all():
+            raise ValueError(f"joint {name!r} sets no coordinate (null leaves one free; leave the joint out instead)")
+        pose[j] = values
     _check_coordinates(pose, "the pose")
     return pose.astype(np.float32)
 
 
 def _joint(name: str) -> int:
-    if name.isdigit() and int(name) < NUM_JOINTS:
+    if name.isascii() and name.isdigit() and int(name) < NUM_JOINTS:
         return int(name)
     if name not in JOINT_NAMES:
-        raise ValueError(f"unknown joint {name!r}; the joints are {', '.join(JOINT_NAMES)}")
+        raise ValueError(f"unknown joint {name!r}: give an index 0-{NUM_JOINTS - 1} or one of the {NUM_JOINTS} names "
+                         "(pelvis, left_hip, ..., head, ..., left_wrist, right_wrist: docs/control.md lists them)")
     return JOINT_NAMES.index(name)
 
 
@@ -590,7 +787,7 @@ def check_reach(c: Constraints, speed: float, skeleton: np.ndarray | None = None
     from lsgan.data.skeleton import JOINT_NAMES as NAMES, bone_lengths
 
     lead = f"{c.origin}: " if c.origin else ""
-    for f, pose in sorted(c.keyframes.items()):
+    for f, pose in sorted(c.keyframes.items()):  # poses (c.poses) are retargeted onto the motion's skeleton
         if skeleton is None or np.isnan(pose).any():
             continue
         mine, ref = bone_lengths(pose[None].astype(np.float64))[0, 1:], np.asarray(skeleton, np.float64)[1:]
@@ -699,7 +896,9 @@ def _bridging(a: np.ndarray, b: np.ndarray | None, frames: int, overlap: int, pl
             raise ValueError(f"{lead}{name} faces nowhere where it is joined (its hips and shoulders are on one "
                              "vertical line)")
     if frames < overlap * (1 if b is None else 2) + 1:
-        raise ValueError(f"a motion of {frames} frames cannot hold the {overlap} shared frames at each end")
+        shared = f"the {overlap} frames it shares with the motion it continues" if b is None else \
+            f"the {overlap} frames it shares with each motion it joins"
+        raise ValueError(f"a motion of {frames} frames cannot hold {shared} and one of its own")
     place = place or frame_at(a, len(a) - overlap)
     keys = {i: pose for i, pose in enumerate(place.undo(a[len(a) - overlap:]))}
     if b is not None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lsgan.constraints import Constraints, facing_yaw, turn
+from lsgan.constraints import Constraints, facing_frame
 from lsgan.data.features import recover_from_ric
 from lsgan.data.skeleton import FPS, NUM_JOINTS
 
@@ -73,23 +73,19 @@ def _joint_errors(joints: torch.Tensor, target: torch.Tensor, weight: torch.Tens
     return (d * on).sum((1, 2)) / on.sum((1, 2)).clamp_min(1)
 
 
-def _facing_frame(poses: torch.Tensor) -> torch.Tensor:
-    """Poses (K, 22, 3) with the root over the origin and the facing turned onto +z (lsgan.constraints.facing_yaw's
-    facing): what of a whole-pose keyframe is left to meet once the root is closed onto it."""
-    shifted = poses - poses[:, :1] * poses.new_tensor([1.0, 0.0, 1.0])
-    return turn(shifted, -facing_yaw(poses)[:, None])
-
-
 def _whole_poses(constraints: list[Constraints], dev) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(rows (K,), frames (K,), poses in their facing frame (K, 22, 3)) of the keyframes that set every joint."""
+    """(rows (K,), frames (K,), poses in their facing frame (K, 22, 3)) of the keyframes that set every joint and
+    of the poses (already in their facing frame)."""
     rows, frames, poses = [], [], []
     for b, c in enumerate(constraints):
         for f, pose in c.keyframes.items():
             if not np.isnan(pose).any():
-                rows.append(b), frames.append(f), poses.append(pose)
+                rows.append(b), frames.append(f), poses.append(facing_frame(np.asarray(pose, np.float64)))
+        for f, pose in c.poses.items():
+            rows.append(b), frames.append(f), poses.append(np.asarray(pose, np.float64))
     if not rows:
         return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), torch.zeros(0, NUM_JOINTS, 3)
-    local = _facing_frame(torch.from_numpy(np.stack(poses)))
+    local = torch.from_numpy(np.stack(poses).astype(np.float32))
     return torch.tensor(rows, device=dev), torch.tensor(frames, device=dev), local.to(dev)
 
 
@@ -99,7 +95,7 @@ def _pose_errors(joints: torch.Tensor, whole: tuple[torch.Tensor, torch.Tensor, 
     out = joints.new_zeros(joints.shape[0])
     if not len(rows):
         return out
-    d = (_facing_frame(joints[rows, frames]) - local).norm(dim=-1).mean(-1)  # (K,)
+    d = (facing_frame(joints[rows, frames]) - local).norm(dim=-1).mean(-1)  # (K,): what closing the root leaves
     count = torch.zeros_like(out).index_add_(0, rows, torch.ones_like(d))
     return out.index_add(0, rows, d) / count.clamp_min(1)
 

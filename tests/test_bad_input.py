@@ -362,6 +362,20 @@ def generate_folder_with_manifest(w: Path, pipe: Path, text: str) -> Path:
     return gen
 
 
+def tiny_bvh(w: Path) -> Path:
+    """A BVH of one joint and two frames: a rig no joint map knows."""
+    return written(w / "tiny.bvh", b"HIERARCHY\nROOT Hips\n{\n  OFFSET 0 0 0\n  CHANNELS 6 Xposition Yposition "
+                   b"Zposition Zrotation Xrotation Yrotation\n  End Site\n  {\n    OFFSET 0 10 0\n  }\n}\nMOTION\n"
+                   b"Frames: 2\nFrame Time: 0.05\n0 90 0 0 0 0\n0 90 0 0 0 0\n")
+
+
+def sparse(path: Path, size: int) -> Path:
+    """A file of ``size`` zero bytes that takes no disk space."""
+    with open(path, "wb") as fh:
+        fh.truncate(size)
+    return path
+
+
 def written(path: Path, content: bytes) -> Path:
     path.write_bytes(content)
     return path
@@ -581,6 +595,29 @@ CASES = [
     Case("path-huge", lambda w, p: path_args(w, p, "0,0\n1e30,0\n"), 1, "beyond 10000"),
     Case("path-with-timeline", lambda w, p: timeline_args(w, p, "walk#40\n") + ["--path", written(
         w / "path.csv", b"0,0\n")], 2, "--path, --keyframe, --continue and --inbetween make one motion: not with --timeline"),
+    Case("path-one-point", lambda w, p: path_args(w, p, "0,0\n"), 1, "a path needs at least two points"),
+    Case("path-file-too-large", lambda w, p: generate_args(p, w / "out", "--path", sparse(w / "big.csv", 17 * 2**20)),
+         1, "larger than 16 MB"),
+    Case("keyframe-json-nan", lambda w, p: keyframe_args(w, p, 5, '{"head": [NaN, 1.6, 0]}', "k.json"), 1,
+         "NaN is not JSON (leave a coordinate free with null)"),
+    Case("keyframe-json-key-twice", lambda w, p: keyframe_args(
+        w, p, 5, '{"head": [0, 1.6, 0], "head": [0, 1.5, 0]}', "k.json"), 1, "'head' is given twice"),
+    Case("keyframe-joint-by-name-and-index", lambda w, p: keyframe_args(
+        w, p, 5, '{"15": [0, 1.6, 0], "head": [0, 1.5, 0]}', "k.json"), 1, "joint head is set twice"),
+    Case("keyframe-unicode-digit-joint", lambda w, p: keyframe_args(w, p, 5, '{"\u00b2": [0, 1.6, 0]}', "k.json"), 1,
+         "unknown joint '\u00b2': give an index 0-21"),
+    Case("keyframe-below-ground", lambda w, p: keyframe_args(w, p, 5, '{"head": [0, -3, 0]}', "k.json"), 1,
+         "head at y = -3.00 m is below the ground"),
+    Case("facing-without-path", lambda w, p: generate_args(p, w / "out", "--facing"), 2,
+         "--facing turns the root along --path"),
+    Case("bvh-keyframe-past-its-frames", lambda w, p: generate_args(p, w / "out", "--keyframe", f"5:{tiny_bvh(w)}@5"),
+         1, "has 2 frames (0..1), not a frame 5"),
+    Case("bvh-keyframe-unmapped-rig", lambda w, p: generate_args(p, w / "out", "--keyframe", f"5:{tiny_bvh(w)}@1"),
+         1, "no joint map fits its joints"),
+    Case("bvh-keyframe-without-frame", lambda w, p: generate_args(p, w / "out", "--keyframe", f"5:{tiny_bvh(w)}"),
+         1, "a BVH keyframe is FRAME:FILE.bvh@BVH_FRAME"),
+    Case("keyframe-map-without-bvh", lambda w, p: generate_args(p, w / "out", "--keyframe-map", "cmu"), 2,
+         "--keyframe-map reads --keyframe BVH files"),
     Case("keyframe-beyond-motion", lambda w, p: keyframe_args(w, p, 40, standing_pose()), 1, "keyframe 40 (40:"),
     Case("keyframe-no-frame", lambda w, p: generate_args(p, w / "out", "--keyframe", "pose.npy"), 1,
          "a keyframe is FRAME:FILE"),
@@ -596,7 +633,7 @@ CASES = [
                                                                        standing_pose())), 1,
          "pose.npy: not a keyframe"),
     Case("keyframe-json-null", lambda w, p: keyframe_args(w, p, 3, '{"right_wrist": [null, null, null]}', "k.json"),
-         1, "joint 'right_wrist' is not a list of numbers"),
+         1, "joint 'right_wrist' sets no coordinate"),
     Case("keyframe-complex", lambda w, p: keyframe_args(w, p, 3, standing_pose().astype(np.complex64)), 1,
          "pose.npy: holds complex64 data"),
     Case("keyframe-other-skeleton", lambda w, p: keyframe_args(w, p, 3, np.zeros((24, 3), np.float32)), 1,

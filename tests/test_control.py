@@ -144,7 +144,10 @@ def test_a_keyframe_file_sets_the_joints_it_names(tmp_path):
     (lambda: Constraints(40, path=np.full((40, 2), np.inf)), "infinite"),
     (lambda: __import__("lsgan.constraints").constraints.Placement(float("nan"), 0, 0), "a finite turn"),
     (lambda: Constraints(40, path=np.ones((40, 2))), "a path's point on frame 0 is the motion's start"),
-    (lambda: Constraints(40, keyframes={40: np.zeros((22, 3))}), "keyframe 40 is beyond the motion's 40 frames"),
+    (lambda: Constraints(40, keyframes={40: np.zeros((22, 3))}), "keyframe 40 is not a frame of the motion: its 40 "
+     "frames are 0..39"),
+    (lambda: Constraints(40, keyframes={3: np.vstack([[0, -0.3, 0]] + [[np.nan] * 3] * 21)}),
+     "keyframe 3: pelvis at y = -0.30 m is below the ground"),
     (lambda: Constraints(40, keyframes={3: np.zeros((24, 3))}), "a pose is 22 joints"),
     (lambda: path_points(np.array([[1.0, 0, 0], [0.5, 1, 1]]), 40), "waypoint times must increase"),
     (lambda: path_points(np.array([[0.0, np.nan, 0]]), 40), "finite (time, x, z)"),
@@ -338,7 +341,8 @@ def _chain_pose(seed: int) -> np.ndarray:
 def test_ik_meets_reachable_joints_keeps_every_bone_and_moves_nothing_else(seed, joint, offset, also_root):
     """A joint moved up to 25 cm within its chain's reach (and the root, sometimes): reached within a tenth of a
     millimetre, every bone length kept, and every joint that does not hang from the solved chain where it was (the
-    chains start below the branching joints, whose layout the rigid fit keeps)."""
+    chains start below the branching joints, whose layout the rigid fit keeps), but for the legs of a body moved
+    down, which keep the feet on their ground."""
     from hypothesis import assume
 
     from lsgan.data.skeleton import PARENTS, bone_lengths
@@ -347,8 +351,9 @@ def test_ik_meets_reachable_joints_keeps_every_bone_and_moves_nothing_else(seed,
     pose = _chain_pose(seed)
     chain = list(next(c for c in CHAINS if joint in c[1:]))
     segment = chain[: chain.index(joint) + 1]
-    reach = np.linalg.norm(np.diff(pose[segment], axis=0), axis=-1).sum()
-    assume(np.linalg.norm(pose[joint] + offset - pose[segment[0]]) < 0.98 * reach)
+    links = np.linalg.norm(np.diff(pose[segment], axis=0), axis=-1)
+    inner = max(0.0, 2 * links.max() - links.sum())  # nearer than this the longest link cannot fold back
+    assume(inner + 0.02 < np.linalg.norm(pose[joint] + offset - pose[segment[0]]) < 0.98 * links.sum())
     target = np.full((22, 3), np.nan)
     target[joint] = pose[joint] + offset
     shift = np.array([0.1, -0.05, 0.2]) if also_root else np.zeros(3)
@@ -358,12 +363,15 @@ def test_ik_meets_reachable_joints_keeps_every_bone_and_moves_nothing_else(seed,
     out = reach_pose(pose, target)
     assert np.linalg.norm(out[joint] - target[joint]) < 1e-4
     assert np.abs(bone_lengths(out) - bone_lengths(pose)).max() < 1e-6
-    moved = set(segment[1:])
+    moved = set(segment[1:]) | ({4, 5, 7, 8, 10, 11} if also_root else set())  # a sunk body's legs are re-solved
     for j in range(1, 22):
         if PARENTS[j] in moved:
             moved.add(j)
     still = [j for j in range(22) if j not in moved]
     assert np.allclose(out[still], pose[still] + shift, atol=1e-9)
+    feet = [f for f in (10, 11) if f not in segment]
+    if also_root:  # the feet go along sideways and stay on their ground
+        assert np.allclose(out[feet], pose[feet] + shift * [1, 0, 1], atol=1e-4)
 
 
 def test_ik_stretches_towards_an_unreachable_joint_and_keeps_free_coordinates():
@@ -419,3 +427,38 @@ def test_facing_turns_the_root_along_the_path_where_it_moves(loaded):
     assert np.isnan(path_yaws(np.zeros((10, 2)))).all()
     with pytest.raises(ValueError, match="facing along the path needs a path"):
         Constraints(10, facing=True)
+
+
+def test_a_keyframe_file_may_leave_coordinates_free_with_null(tmp_path):
+    """{"head": [null, 1.6, null]} sets the head's height only; the file's other rules still hold."""
+    f = tmp_path / "k.json"
+    f.write_text('{"head": [null, 1.6, null], "left_foot": [0.1, 0.0, null]}')
+    frame, pose = read_keyframe(f"7:{f}", 40)
+    assert frame == 7 and np.isnan(pose[15, [0, 2]]).all() and pose[15, 1] == pytest.approx(1.6)
+    assert pose[10, 0] == pytest.approx(0.1) and np.isnan(pose[10, 2]) and np.isnan(pose[0]).all()
+
+
+SHARED_CMU = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu" / "131_01.bvh"
+
+
+@pytest.mark.skipif(not SHARED_CMU.is_file(), reason="../shared/data/cmu (a CMU BVH clip) is not beside the project")
+def test_a_bvh_frame_is_a_pose_taken_wherever_the_motion_is(loaded):
+    """--keyframe 30:clip.bvh@100 through the CMU joint map: a pose of another rig, retargeted onto the motion's
+    skeleton (its bone directions; the hips', spine's, neck's and collars' layout is the motion's own), taken where
+    the motion stands and faces on frame 30: every other bone points as the clip's does within a few degrees, and
+    the manifest's figure is the motion of record's."""
+    from lsgan.constraints import facing_frame, read_bvh_pose
+    from lsgan.data.skeleton import PARENTS
+
+    frame, pose = read_bvh_pose(f"30:{SHARED_CMU}@100", 40)
+    assert frame == 30 and pose.shape == (22, 3) and np.abs(pose[0, [0, 2]]).max() < 1e-6
+    assert read_bvh_pose(f"30:{SHARED_CMU}@100", 40, "cmu")[1] == pytest.approx(pose)
+    c = Constraints(40, poses={30: pose})
+    g = generate_loaded(loaded, [Request(text="a person walks", frames=40)], seed=1, constraints=c,
+                        control_settings=ControlSettings(noise_steps=0))
+    m = g.motions[0]
+    got, want = facing_frame(m.joints[30].astype(np.float64)), pose.astype(np.float64)
+    bones = [(got[j] - got[p], want[j] - want[p]) for j, p in enumerate(PARENTS) if p not in (-1, 0, 9)]
+    cosines = [a @ b / np.linalg.norm(a) / np.linalg.norm(b) for a, b in bones]
+    assert min(cosines) > np.cos(np.radians(5)), np.degrees(np.arccos(np.clip(cosines, -1, 1))).max()
+    assert m.control["poses_m"]["max"] < 0.02 and np.allclose(g.control["poses"]["30"], pose)

@@ -140,13 +140,28 @@ CASES = [
     Case("path-overflowing-number", "POST", GEN, b'{"text": "walk", "path": [[0, 0], [1e999, 0]]}', 422,
          "beyond 10000"),
     Case("keyframe-beyond", "POST", GEN, J(text="walk", frames=40, keyframes=[
-        {"frame": 400, "joints": {"pelvis": [0, 0.9, 0]}}]), 422, "beyond the motion's 40 frames"),
+        {"frame": 400, "joints": {"pelvis": [0, 0.9, 0]}}]), 422, "keyframes[0]: keyframe 400 is not a frame of the "
+         "motion: its 40 frames are 0..39"),
     Case("keyframe-negative", "POST", GEN, J(text="walk", keyframes=[{"frame": -1, "joints": {"head": [0, 1, 0]}}]),
-         422, "keyframe -1 is beyond"),
+         422, "keyframes[0]: keyframe -1 is not a frame of the motion"),
+    Case("keyframe-below-ground", "POST", GEN, J(text="walk", keyframes=[{"frame": 5, "joints": {"head": [0, -3, 0]}}]),
+         422, "keyframes[0]: keyframe 5: head at y = -3.00 m is below the ground"),
+    Case("keyframe-joint-twice", "POST", GEN, J(text="walk", keyframes=[
+        {"frame": 5, "joints": {"21": [0.3, 1.2, 0.2], "right_wrist": [0.4, 1.2, 0.2]}}]), 422,
+         "joint right_wrist is set twice"),
+    Case("keyframe-all-null", "POST", GEN, J(text="walk", keyframes=[{"frame": 5, "joints": {"head": [None] * 3}}]),
+         422, "sets no coordinate"),
+    Case("keyframe-unicode-digit-joint", "POST", GEN, J(text="walk", keyframes=[
+        {"frame": 5, "joints": {"\u00b2": [0, 1, 0]}}]), 422, "unknown joint"),
+    Case("path-one-point", "POST", GEN, J(text="walk", path=[[0, 0]]), 422, "a path needs at least two points"),
+    Case("num-over-control-limit", "POST", GEN, J(text="walk", num=3, path=[[0, 0], [0.05, 0]]), 422,
+         "num must be 1 to 2 with constraints"),
     Case("keyframe-unknown-joint", "POST", GEN, J(text="walk", keyframes=[{"frame": 5, "joints": {"nose": [0, 1, 0]}}]),
          422, "keyframes[0]: unknown joint 'nose'"),
     Case("keyframe-two-coordinates", "POST", GEN, J(text="walk", keyframes=[
         {"frame": 5, "joints": {"left_wrist": [0, 1]}}]), 422, "has 2 coordinates, not 3"),
+    Case("keyframe-string-coordinate", "POST", GEN, J(text="walk", keyframes=[
+        {"frame": 5, "joints": {"head": ["1", 1, 1]}}]), 422, "keyframes.0.joints"),
     Case("keyframe-no-joint", "POST", GEN, J(text="walk", keyframes=[{"frame": 5, "joints": {}}]), 422,
          "with at least one joint"),
     Case("keyframe-wrong-skeleton", "POST", GEN, J(text="walk", keyframes=[
@@ -165,7 +180,8 @@ CASES = [
         {"frame": 5, "joints": {"head": [0, 1.6, 0]}, "weight": 2}]), 422, "keyframes.0.weight"),
     Case("keyframes-empty", "POST", GEN, J(text="walk", keyframes=[]), 422, "keyframes: an empty list"),
     Case("keyframe-root-off-start", "POST", GEN, J(text="walk", keyframes=[
-        {"frame": 0, "joints": {"pelvis": [1.0, 0.9, 0.0]}}]), 422, "on frame 0 is the motion's start"),
+        {"frame": 0, "joints": {"pelvis": [1.0, 0.9, 0.0]}}]), 422, "keyframes[0]: keyframe 0's root on frame 0 is the "
+         "motion's start"),
     Case("facing-without-path", "POST", GEN, J(text="walk", facing=True), 422, "facing: it turns the root along a path"),
     Case("facing-number", "POST", GEN, J(text="walk", path=[[0, 0], [0.05, 0]], facing=1), 422,
          "facing: input should be a valid boolean"),

@@ -136,3 +136,29 @@ def test_passes_run_side_by_side_on_two_engines(serve_models: Path) -> None:
         batcher.close()
         for e in engines:
             e.close()
+
+
+def test_requests_without_constraints_go_before_constrained_ones(serve_models: Path) -> None:
+    """While a constrained pass runs, a constrained request and then a plain one arrive: the plain one's pass
+    starts first (constrained passes are taken only when no plain request waits), and each constrained request
+    has a pass of its own."""
+    from lsgan.constraints import Constraints, path_points
+
+    engine = EngineProcess(gan=str(serve_models / "gan"), vae=str(serve_models / "vae"))
+    batcher = Batcher([engine], gather_ms=1, max_batch=8, cores=2)
+    path = path_points(np.array([[0, 0, 0], [2.0, 0.5, 1.5], [9.5, 1.0, 6.0]]), 196)
+    control = Constraints(196, path=path).record()
+    try:
+        first = batcher.submit(Item(text="a person walks", frames=196, num=2, seed=1, control=control))
+        time.sleep(0.05)  # the first pass has started
+        late = batcher.submit(Item(text="a person walks", frames=196, num=2, seed=2, control=control))
+        plain = batcher.submit(Item(text="a person waves", frames=40, seed=3))
+        for job in (first, late, plain):
+            job.future.result(120)
+            batcher.done(job)
+        assert first.started_at < plain.started_at < late.started_at
+        assert [p.motions for p in batcher.recent] == [2, 1, 2]
+        assert late.future.result().control[0]["path_m"]["max"] < 1e-4
+    finally:
+        batcher.close()
+        engine.close()

@@ -68,7 +68,10 @@ Examples:
 @click.option("--facing", is_flag=True, help="--path: the root also faces along the path wherever it moves (faster "
               "than 0.2 m/s); keyframe poses still set their own facing.")
 @click.option("--keyframe", "keyframes", multiple=True, metavar="FRAME:FILE", help="Joints to hit at FRAME: a .npy of "
-              "the 22 joints (22, 3) or a .json of {joint name: [x, y, z]} for some (repeatable).")
+              "the 22 joints (22, 3) or a .json of {joint name: [x, y, z]} for some (null: a free coordinate), in the "
+              "motion's frame; or a BVH file's frame, FILE.bvh@K, a pose taken wherever the motion is (repeatable).")
+@click.option("--keyframe-map", metavar="PRESET|FILE.json", help="The joint map of --keyframe BVH files: a preset "
+              "(bandai, cmu, mixamo) or a JSON map (default: the first preset that finds every joint).")
 @click.option("--continue", "continue_from", type=In(exists=True, dir_okay=False), help="A motion to continue "
               "(joints (T, 22, 3) or features (T, 263) .npy, e.g. an earlier *_joints.npy): each new motion starts with "
               "its last 5 frames (position, heading, pose, velocity) and is placed where it is.")
@@ -78,7 +81,7 @@ Examples:
               "wrote there (never other files).")
 def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap, join, frames, seconds, num, seed,
              text_encoder_path, batch_size, device, steps, guidance, output, raw_joints, fix_feet, path_file,
-             facing, keyframes, continue_from, inbetween, force) -> None:
+             facing, keyframes, keyframe_map, continue_from, inbetween, force) -> None:
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.data.clip import ClipError
@@ -98,6 +101,8 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
                                "(its --join continue chains segments)")
     if facing and path_file is None:
         raise click.UsageError("--facing turns the root along --path: give a path")
+    if keyframe_map and not any(".bvh" in k.lower() for k in keyframes):
+        raise click.UsageError("--keyframe-map reads --keyframe BVH files (FRAME:FILE.bvh@K): give one")
     if bridged and fix_feet:
         raise click.UsageError("--fix-feet would move the feet of the frames --continue and --inbetween share with "
                                "the motions they join: give one or the other")
@@ -120,10 +125,10 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
     if not requests:
         raise click.UsageError("give --text, --prompts or --action")
     try:
-        constraints, placement = _constraints((path_file, facing), keyframes, continue_from, inbetween, requests,
-                                              _reach_of(runtime, gan, vae, int8)) if controlled else (None, None)
+        constraints, placement = _constraints((path_file, facing), (keyframes, keyframe_map), continue_from, inbetween,
+                                              requests, _reach_of(runtime, gan, vae, int8)) if controlled else (None, None)
         inputs = [p for p in (vae, prompts, path_file, continue_from, *(inbetween or ())) if p] + [
-            k.partition(":")[2] for k in keyframes]
+            _keyframe_file(k) for k in keyframes] + [m for m in (keyframe_map,) if m and m.lower().endswith(".json")]
         claim_generation(output, gan, *inputs, force=force)
         if runtime == "onnx":
             from lsgan.deploy.runtime import generate_onnx
@@ -156,7 +161,8 @@ def _report_control(result) -> None:
 
     misses = [m.control for m in result.motions if m.control is not None]
     for kind, what, unit, scale in (("path_m", "root path: missed by", "cm", 100), ("keyframes_m", "keyframe joints: "
-                                    "missed by", "cm", 100), ("facing_deg", "facing along the path: missed by",
+                                    "missed by", "cm", 100), ("poses_m", "poses (wherever the motion is): missed by",
+                                    "cm", 100), ("facing_deg", "facing along the path: missed by",
                                     "degrees", 1), ("seam_velocity_m_s", "velocity where the shared "
                                     "frames end: changed by", "m/s", 1)):
         got = [c[kind] for c in misses if kind in c]
@@ -181,9 +187,9 @@ def _reach_of(runtime, gan, vae, int8):
 
 
 def _constraints(path, keyframes, continue_from, inbetween, requests, reach):
-    """(constraints, placement) of --path (``path``: the file and --facing) and --keyframe, or of --continue /
-    --inbetween, for motions of one length (every request's), checked against the model's ``reach`` before anything
-    is written."""
+    """(constraints, placement) of --path (``path``: the file and --facing) and --keyframe (``keyframes``: the specs
+    and --keyframe-map), or of --continue / --inbetween, for motions of one length (every request's), checked against
+    the model's ``reach`` before anything is written."""
     import numpy as np
 
     lengths = {r.frames for r in requests}
@@ -193,9 +199,19 @@ def _constraints(path, keyframes, continue_from, inbetween, requests, reach):
         return _read_constraints(path, keyframes, continue_from, inbetween, reach, lengths.pop())
 
 
-def _read_constraints(path_and_facing, keyframes, continue_from, inbetween, reach, frames):
+def _keyframe_file(spec: str) -> str:
+    """The file a --keyframe names (without a BVH frame's @K)."""
+    from lsgan.constraints import BVH_FRAME
+
+    file = spec.partition(":")[2].strip()
+    m = BVH_FRAME.fullmatch(file)
+    return m["file"] if m else file
+
+
+def _read_constraints(path_and_facing, keyframes_and_map, continue_from, inbetween, reach, frames):
     """:func:`_constraints` once the length is known."""
-    from lsgan.constraints import Constraints, check_reach, continuing, inbetween as bridge, read_keyframe, read_path
+    from lsgan.constraints import (Constraints, check_reach, continuing, inbetween as bridge, is_bvh_keyframe,
+                                   read_bvh_pose, read_keyframe, read_path)
     from lsgan.export.bvh import load_motion_joints
 
     placement = None
@@ -206,12 +222,14 @@ def _read_constraints(path_and_facing, keyframes, continue_from, inbetween, reac
         constraints, placement = bridge(a, b, frames, source=f"{inbetween[0]} to {inbetween[1]}")
     else:
         path_file, facing = path_and_facing
+        keyframes, keyframe_map = keyframes_and_map
         path = read_path(path_file, frames) if path_file else None
-        poses = dict(read_keyframe(k, frames) for k in keyframes)
-        if len(poses) < len(keyframes):
+        points = dict(read_keyframe(k, frames) for k in keyframes if not is_bvh_keyframe(k))
+        poses = dict(read_bvh_pose(k, frames, keyframe_map) for k in keyframes if is_bvh_keyframe(k))
+        if len(points) + len(poses) < len(keyframes) or set(points) & set(poses):
             raise ValueError("two --keyframe options name the same frame")
         origin = ", ".join([path_file] * bool(path_file) + list(keyframes))
-        constraints = Constraints(frames, path=path, keyframes=poses, facing=facing, origin=origin)
+        constraints = Constraints(frames, path=path, keyframes=points, poses=poses, facing=facing, origin=origin)
     check_reach(constraints, *reach)
     return constraints, placement
 

@@ -54,6 +54,8 @@ in flight and exits 0.
               help="Longest motion (default: the model's maximum, at most 196; never more than the model's).")
 @click.option("--default-frames", type=click.IntRange(1), help="Length when a request gives none (default 120).")
 @click.option("--max-num", default=8, show_default=True, type=click.IntRange(1), help="Motions per request.")
+@click.option("--max-control-num", default=2, show_default=True, type=click.IntRange(1),
+              help="Motions per request with constraints (each optimised for tenths of a second on a CPU).")
 @click.option("--max-body-bytes", default=16384, show_default=True, type=click.IntRange(64), help="Largest request body.")
 @click.option("--max-in-flight", default=64, show_default=True, type=click.IntRange(1),
               help="Requests admitted at once; more get 503 with Retry-After.")

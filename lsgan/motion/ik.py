@@ -11,7 +11,7 @@ import numpy as np
 
 from lsgan.data.skeleton import NUM_JOINTS, PARENTS
 
-ITERATIONS = 64  # FABRIK passes at most; a reachable target is met to TOLERANCE within a few dozen
+ITERATIONS = 256  # FABRIK passes at most; a reachable target is met to TOLERANCE within a few dozen
 TOLERANCE = 1e-6  # metres
 REACH = 0.99  # of a chain's length: how far a moved body lets it stretch (a straight chain has no bend left)
 PROJECTIONS = 4  # rounds of solving and fitting the rigid skeleton's layout (reach_pose's ``offsets``)
@@ -23,6 +23,8 @@ CHAINS = ((3, 6, 9, 12, 15), (3, 6, 9, 13), (3, 6, 9, 14), (13, 16, 18, 20), (14
           (2, 5, 8, 11))
 LEGS = ((1, 4, 7, 10), (2, 5, 8, 11))
 HELD = (1, 2, 3)  # the pelvis's children: set, they move the whole body (when the root is free)
+LEG_FEET = (10, 11)
+HIP_CLEARANCE = 0.15  # metres: the lowest the pelvis is lowered to above the feet when a spine target pulls it
 
 
 def reach_pose(pose: np.ndarray, target: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
@@ -39,37 +41,58 @@ def reach_pose(pose: np.ndarray, target: np.ndarray, offsets: np.ndarray | None 
 
 def _solve(out: np.ndarray, target: np.ndarray) -> np.ndarray:
     """A set root moves the whole pose, and so do set hips or spine (the mean of their misses, when the root is
-    free); along each chain of :data:`CHAINS` the joints up to each set one are solved by FABRIK with the chain's
-    first joint held, and the joints hanging from a moved joint move with it. When the root is free and a spine
-    joint is out of the spine's reach, the whole body moves by the excess and the legs are solved back onto where
-    the feet were. A target still out of reach is approached in a straight line."""
+    free); the feet go along sideways, and the legs are solved back onto the ground they stood on when the body
+    rises or sinks. Along each chain of :data:`CHAINS` the joints up to each set one are solved by FABRIK with the
+    chain's first joint held, and the joints hanging from a moved joint move with it. When the root is free and a
+    spine joint is out of the spine's reach, the whole body goes under it (feet and all), then rises or sinks by
+    what is still out of reach, as far as the legs still reach the feet (:func:`_lift`). A target still out of
+    reach is approached in a straight line."""
     if target.shape != (NUM_JOINTS, 3) or out.shape != (NUM_JOINTS, 3):
         raise ValueError(f"a pose and its target are ({NUM_JOINTS}, 3), not {out.shape} and {target.shape}")
     free_root = bool(np.isnan(target[0]).all())
+    move = np.zeros(3)
     if not free_root:
-        out += np.where(np.isnan(target[0]), 0.0, target[0] - out[0])
+        move = np.where(np.isnan(target[0]), 0.0, target[0] - out[0])
     elif not np.isnan(target[list(HELD)]).all():
         miss = target[list(HELD)] - out[list(HELD)]
         on = ~np.isnan(miss)
-        out += np.where(on, miss, 0.0).sum(0) / np.maximum(on.sum(0), 1)
-    planted = out.copy()  # the feet's places, kept when the body has to move
+        move = np.where(on, miss, 0.0).sum(0) / np.maximum(on.sum(0), 1)
+    planted = out.copy()  # the feet's places: carried sideways with the body, kept when it rises or sinks
+    planted[:, [0, 2]] += move[[0, 2]]
+    out += move
     for chain in CHAINS:
         leg = chain in LEGS
         goals = {j: np.where(np.isnan(target[j]), out[j], target[j]) for j in chain[1:] if not np.isnan(target[j]).all()}
-        if leg and chain[-1] not in goals and not np.allclose(out[0], planted[0]):
-            goals[chain[-1]] = planted[chain[-1]]  # the body moved: the foot stays where it was
+        if leg and chain[-1] not in goals and np.abs(out[chain[-1]] - planted[chain[-1]]).max() > 1e-9:
+            goals[chain[-1]] = planted[chain[-1]]  # the body rose or sank: the foot stays on its ground
         base = 0
         for k in range(1, len(chain)):
             if chain[k] not in goals:
                 continue
             segment = list(chain[base:k + 1])
-            if free_root and chain[0] == 3 and base == 0:  # the spine: the body moves, the feet stay
-                out += _excess(out[segment], goals[chain[k]])
+            if free_root and chain[0] == 3 and base == 0 and _excess(out[segment], goals[chain[k]]).any():
+                across = goals[chain[k]] - out[chain[k]]  # out of the spine's reach: the body goes there, upright
+                across[1] = 0.0
+                out += across
+                planted += across
+                out += _lift(out, planted, _excess(out[segment], goals[chain[k]]))
             before = out.copy()
             out[segment] = fabrik(out[segment], goals[chain[k]])
             _carry(out, before, set(segment))
             base = k
     return out
+
+
+def _lift(pose: np.ndarray, planted: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The largest part of ``shift`` (3,) the body can move by with both legs still reaching their planted feet
+    (within :data:`REACH` of their length) and the hips at least :data:`HIP_CLEARANCE` above the feet."""
+    lengths = [np.linalg.norm(np.diff(pose[list(leg)], axis=0), axis=-1).sum() for leg in LEGS]
+    for t in np.linspace(1.0, 0.0, 41):
+        moved = pose + t * shift
+        if all(np.linalg.norm(planted[leg[-1]] - moved[leg[0]]) <= REACH * n for leg, n in zip(LEGS, lengths)) \
+                and moved[0, 1] >= planted[list(LEG_FEET), 1].max() + HIP_CLEARANCE:
+            return t * shift
+    return np.zeros(3)
 
 
 def _excess(points: np.ndarray, goal: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ that waits past its timeout is cancelled and is not computed if its pass has not
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import threading
@@ -61,6 +62,7 @@ class Job:
     future: Future = field(default_factory=Future)
     queued_at: float = field(default_factory=time.perf_counter)
     started_at: float = 0.0  # when its pass began
+    order: int | None = None  # its place in the queue among those of its rank (Batcher._put)
 
 
 class Batcher:
@@ -74,7 +76,8 @@ class Batcher:
         self._overlapped_at = -float("inf")  # when a pass last started beside another
         cores = cores or usable_cpus()
         self.share = max(1, cores // len(self.engines))  # threads of a pass beside others
-        self._queue: queue.Queue[Job | None] = queue.Queue()
+        self._queue: queue.PriorityQueue = queue.PriorityQueue()  # (rank, order, job): see _put
+        self._order = itertools.count()
         self._carry: Job | None = None  # a job that did not fit in the last pass: the next pass's first
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)  # an engine became idle
@@ -98,8 +101,20 @@ class Batcher:
                 raise Busy(f"server busy: {self.in_flight} requests in flight (the limit); retry shortly")
             self.in_flight += 1
         job = Job(item)
-        self._queue.put(job)
+        self._put(job)
         return job
+
+    def _put(self, job: Job | None) -> None:
+        """Queue ``job`` behind the others of its rank: requests without constraints first, then constrained ones
+        (each a pass of tenths of a second or more), then the closing mark (None) after everything."""
+        rank = 2 if job is None else int(job.item.control is not None)
+        order = next(self._order) if job is None or job.order is None else job.order
+        if job is not None:
+            job.order = order
+        self._queue.put((rank, order, job))
+
+    def _get(self, timeout: float | None = None) -> Job | None:
+        return self._queue.get(timeout=timeout)[2]
 
     def done(self, job: Job) -> None:
         """The request of ``job`` is answered or abandoned: free its place, and skip it if not started."""
@@ -109,7 +124,7 @@ class Batcher:
 
     def close(self, timeout: float = 30.0) -> None:
         """Finish the queued passes and stop the threads."""
-        self._queue.put(None)
+        self._put(None)
         deadline = time.monotonic() + timeout
         for t in reversed(self._threads):  # the dispatcher first: it stops the engines' threads
             t.join(max(0.0, deadline - time.monotonic()))
@@ -125,7 +140,8 @@ class Batcher:
 
     def _gather(self, first: Job) -> list[Job]:
         """``first`` and the jobs that join it within the gathering window, up to ``max_batch`` motions. A job with
-        constraints has its pass to itself: it is optimised for tenths of a second, which others should not wait for."""
+        constraints has its pass to itself, taken only when no request without constraints waits (:meth:`_put`):
+        it is optimised for tenths of a second or more, which others should not wait for."""
         jobs, motions = [first], first.item.num
         if first.item.control is not None:
             return jobs
@@ -133,13 +149,16 @@ class Batcher:
         while motions < self.max_batch:
             alone = self.in_flight <= len(jobs) + self.computing  # no other request admitted could join
             try:
-                job = self._queue.get(timeout=0.0 if alone else max(0.0, deadline - time.perf_counter()))
+                job = self._get(timeout=0.0 if alone else max(0.0, deadline - time.perf_counter()))
             except queue.Empty:
                 break
             if job is None:  # closing: finish this pass, stop after it
-                self._queue.put(None)
+                self._put(None)
                 break
-            if motions + job.item.num > self.max_batch or job.item.control is not None:
+            if job.item.control is not None:  # a pass of its own, after the requests without constraints
+                self._put(job)
+                break
+            if motions + job.item.num > self.max_batch:
                 self._carry = job
                 break
             jobs.append(job)
@@ -149,7 +168,7 @@ class Batcher:
     def _dispatch(self) -> None:
         """Passes to idle engines until closed; then the engines' threads finish their passes and stop."""
         while True:
-            first, self._carry = self._carry or self._queue.get(), None
+            first, self._carry = self._carry or self._get(), None
             if first is None:
                 break
             index = self._take_engine()  # after the first request: the first engine whenever it is idle by then

@@ -62,7 +62,7 @@ def parse_json(body: bytes) -> dict:
 def _validation_message(error: ValidationError) -> str:
     """pydantic's first error as one line: the field, then what is wrong with it."""
     e = error.errors()[0]
-    where = ".".join(str(p) for p in e["loc"]) or "body"
+    where = ".".join(str(p) for p in e["loc"] if "[" not in str(p)) or "body"  # not pydantic's union members
     if e["type"] == "extra_forbidden":
         fields = FIELDS if len(e["loc"]) == 1 else f"{KEYFRAME_FIELDS} (of a keyframe)"
         return f"{where}: unknown field (the fields are {fields})"
@@ -110,6 +110,9 @@ def to_item(obj: dict, engine: Engine, limits: Limits, lookup=lambda key: None) 
         raise ApiError(422, f"num must be 1 to {limits.max_num}, got {short(req.num)}")
     seed = secrets.randbelow(DRAWN_SEEDS) if req.seed is None else req.seed
     control, placement = control_of(req, engine, frames, lookup)
+    most = min(limits.max_control_num, limits.max_num)
+    if control is not None and req.num > most:
+        raise ApiError(422, f"num must be 1 to {most} with constraints (each motion is optimised), got {short(req.num)}")
     return Item(text=text, action=req.action, frames=frames, num=req.num, seed=seed, control=control,
                 placement=placement)
 
@@ -139,7 +142,7 @@ def control_of(req: GenerateRequest, engine: Engine, frames: int, lookup) -> tup
             if joints is None:
                 raise ApiError(422, f"continue_from: no motion {short(req.continue_from)} (an unknown id, or one "
                                     "dropped from the store)")
-            c, place = _refused("continue_from", lambda: continuing(joints, frames, source="continue_from"))
+            c, place = _refused("continue_from", lambda: continuing(joints, frames))
             placement = (place.yaw, place.x, place.z)
         else:
             path = None if req.path is None else _refused("path", lambda: path_from_rows(json_rows(req.path), frames))
@@ -148,6 +151,7 @@ def control_of(req: GenerateRequest, engine: Engine, frames: int, lookup) -> tup
                 if k.frame in poses:
                     raise ApiError(422, f"keyframes[{i}]: a second keyframe for frame {k.frame}")
                 poses[k.frame] = _refused(f"keyframes[{i}]", lambda k=k: pose_from_json(k.joints))
+                _refused(f"keyframes[{i}]", lambda k=k: Constraints(frames, keyframes={k.frame: poses[k.frame]}))
             c = _refused("constraints", lambda: Constraints(frames, path=path, keyframes=poses, facing=req.facing))
         _refused(given[0] if len(given) == 1 else "constraints",
                  lambda: check_reach(c, engine.reach["speed"], np.asarray(engine.reach["skeleton"])))

@@ -17,6 +17,7 @@ class Limits:
     max_frames: int | None = None  # None: the model's own maximum (its VAE's positional table), at most 196
     default_frames: int | None = None  # None: 120, or max_frames when less
     max_num: int = 8  # motions per request
+    max_control_num: int = 2  # motions per request with constraints (path, keyframes, continue_from)
     max_body_bytes: int = 16384  # of a request body
     max_in_flight: int = 64  # requests admitted and not yet answered; more get 503 with Retry-After
     timeout_s: float = 10.0  # per request, from admission to its motions; then 503
@@ -39,26 +40,27 @@ class Limits:
             self = replace(self, max_frames=min(TRAINED_FRAMES, model_max_frames))
         if self.default_frames is None:
             self = replace(self, default_frames=min(120, self.max_frames))
-        problems = [name for name, ok in (
-            ("max_text_chars", self.max_text_chars >= 1),
-            ("min_frames", 1 <= self.min_frames <= self.max_frames),
-            ("max_num", self.max_num >= 1),
-            ("max_body_bytes", self.max_body_bytes >= 64),
-            ("max_in_flight", self.max_in_flight >= 1),
-            ("timeout_s", 0 < self.timeout_s <= MAX_WAIT_S),
-            ("gather_ms", 0 <= self.gather_ms <= 1000),
-            ("max_batch", self.max_batch >= self.max_num),
-            ("store_size", self.store_size >= self.max_num),
-            ("max_line_bytes", 64 <= self.max_line_bytes <= self.max_header_bytes),
-            ("max_header_bytes", self.max_header_bytes >= 1024),
-            ("max_headers", self.max_headers >= 8),
-            ("header_timeout_s", 0 < self.header_timeout_s <= MAX_WAIT_S),
-            ("body_timeout_s", 0 < self.body_timeout_s <= MAX_WAIT_S),
-            ("keep_alive_s", 0 < self.keep_alive_s <= MAX_WAIT_S),
-            ("max_connections", self.max_connections >= 1),
+        problems = [f"{name} {rule}" for name, ok, rule in (
+            ("max_text_chars", self.max_text_chars >= 1, "at least 1"),
+            ("min_frames", 1 <= self.min_frames <= self.max_frames, "1 to max_frames"),
+            ("max_num", self.max_num >= 1, "at least 1"),
+            ("max_control_num", self.max_control_num >= 1, "at least 1"),
+            ("max_body_bytes", self.max_body_bytes >= 64, "at least 64"),
+            ("max_in_flight", self.max_in_flight >= 1, "at least 1"),
+            ("timeout_s", 0 < self.timeout_s <= MAX_WAIT_S, f"above 0, at most {MAX_WAIT_S:g}"),
+            ("gather_ms", 0 <= self.gather_ms <= 1000, "0 to 1000"),
+            ("max_batch", self.max_batch >= self.max_num, "at least max_num"),
+            ("store_size", self.store_size >= self.max_num, "at least max_num"),
+            ("max_line_bytes", 64 <= self.max_line_bytes <= self.max_header_bytes, "64 to max_header_bytes"),
+            ("max_header_bytes", self.max_header_bytes >= 1024, "at least 1024"),
+            ("max_headers", self.max_headers >= 8, "at least 8"),
+            ("header_timeout_s", 0 < self.header_timeout_s <= MAX_WAIT_S, f"above 0, at most {MAX_WAIT_S:g}"),
+            ("body_timeout_s", 0 < self.body_timeout_s <= MAX_WAIT_S, f"above 0, at most {MAX_WAIT_S:g}"),
+            ("keep_alive_s", 0 < self.keep_alive_s <= MAX_WAIT_S, f"above 0, at most {MAX_WAIT_S:g}"),
+            ("max_connections", self.max_connections >= 1, "at least 1"),
         ) if not ok]
         if problems:
-            raise ValueError(f"inconsistent limits: {', '.join(problems)} ({self.describe()})")
+            raise ValueError(f"inconsistent limits: {'; '.join(problems)} ({self.describe()})")
         if self.max_frames > model_max_frames:
             raise ValueError(f"max frames {self.max_frames} is more than this model decodes ({model_max_frames}, "
                              "its VAE's positional table)")

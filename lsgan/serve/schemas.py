@@ -12,9 +12,10 @@ class Keyframe(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid")
 
     frame: int = Field(description="0 .. frames - 1")
-    joints: dict[str, list[float]] | list[list[float]] = Field(
-        description="Some joints by name or index, {\"left_wrist\": [x, y, z]}, or all 22 as [[x, y, z], ...] in "
-                    "HumanML3D's order (GET /v1/info: skeleton.names).")
+    joints: dict[str, list[float | None]] | list[list[float]] = Field(
+        description="Some joints by name or index, {\"left_wrist\": [x, y, z]} (null leaves a coordinate free: "
+                    "{\"head\": [null, 1.7, null]}), or all 22 as [[x, y, z], ...] in HumanML3D's order (GET /v1/info: "
+                    "skeleton.names).")
 
 
 class GenerateRequest(BaseModel):

@@ -75,8 +75,14 @@ function perFrame(points, frames) {
   return rows;
 }
 
-function describePath() {
+// The motion's length: the frames field, or the server's default when it is empty.
+function lengthAsked() {
   const frames = Number.parseInt(ui.frames.value, 10);
+  return Number.isFinite(frames) ? frames : (info && info.default_frames) || NaN;
+}
+
+function describePath() {
+  const frames = lengthAsked();
   if (!drawn) {
     ui.pathLine.textContent = '';
     return;
@@ -87,11 +93,12 @@ function describePath() {
     + (info && info.control ? ` (this model goes up to ${info.control.max_speed_m_s.toFixed(1)} m/s)` : '');
 }
 
-function setPath(points) {
+function setPath(points, { stroke = false } = {}) {
   drawn = points && points.length > 1 ? points : null;
   viewer.setPath(drawn);
   ui.clearPath.disabled = !drawn || ui.continue.checked;
   describePath();
+  if (stroke && !drawn) ui.pathLine.textContent = 'Too short to be a path: drag further across the ground.';
 }
 
 function setDrawing(on) {
@@ -222,8 +229,8 @@ async function generate() {
     if (Number.isFinite(frames)) body.frames = frames;
     if (!ui.seedRandom.checked && ui.seed.value.trim() !== '') body.seed = Number(ui.seed.value);
     if (ui.continue.checked && shownId) body.continue_from = shownId;
-    else if (drawn && Number.isFinite(frames)) {
-      body.path = perFrame(drawn, frames);
+    else if (drawn && Number.isFinite(lengthAsked())) {
+      body.path = perFrame(drawn, lengthAsked());
       if (ui.facing.checked) body.facing = true;
     }
 

@@ -145,7 +145,10 @@ export class Viewer {
       last = [e.clientX, e.clientY];
     });
     const end = () => {
-      if (stroke) this.onPath(this.drawn);
+      if (stroke) {
+        if (stroke.length < 2) this.setPath(null);  // a click or a scribble under DRAW_STEP draws nothing
+        this.onPath(this.drawn, { stroke: true });
+      }
       last = null;
       stroke = null;
     };
