@@ -162,11 +162,11 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
     An existing ``out`` is refused unless ``force``, which first clears the files an earlier lsgan run wrote
     there (and only those).
     """
-    out = claim_generation(out, *result.inputs, force=force)
+    stems = motion_stems([m.request for m in result.motions])
+    out = claim_generation(out, *result.inputs, force=force, files=generation_files(stems, raw_joints))
     out.mkdir(parents=True, exist_ok=True)
     entries = []
-    for i, m in enumerate(result.motions):
-        stem = f"{i:03d}_{_slug(m.request.text or m.request.action or 'motion')}"
+    for i, (m, stem) in enumerate(zip(result.motions, stems)):
         arrays = [("features", m.features), ("joints", m.joints)]
         if raw_joints:
             arrays.append(("joints_raw", m.raw_joints if m.raw_joints is not None else recover_from_ric(m.features)))
@@ -203,6 +203,20 @@ def write_generation(result: Generation, out: str | os.PathLike, *, force: bool 
     return path
 
 
-def claim_generation(out: str | os.PathLike, *inputs: str | os.PathLike, force: bool = False) -> Path:
-    """Check (before generating) that ``out`` may be written: see :func:`write_generation`."""
+def motion_stems(requests: list[Request]) -> list[str]:
+    """The file stem of each motion (one request per motion, in order): ``000_a-person-walks``."""
+    return [f"{i:03d}_{_slug(r.text or r.action or 'motion')}" for i, r in enumerate(requests)]
+
+
+def generation_files(stems: list[str], raw_joints: bool = False) -> list[str]:
+    """The names :func:`write_generation` writes for motions of these stems."""
+    suffixes = ("features", "joints") + (("joints_raw",) if raw_joints else ())
+    return [f"{stem}_{x}.npy" for stem in stems for x in suffixes] + ["manifest.json"]
+
+
+def claim_generation(out: str | os.PathLike, *inputs: str | os.PathLike, force: bool = False,
+                     files: list[str] = ()) -> Path:
+    """Check (before generating) that ``out`` may be written: see :func:`write_generation`. ``files``: the names
+    the run will write, each refused first if it may not be replaced (before an earlier run's files are cleared)."""
+    outputs.check_replaceable([Path(out) / name for name in files], force=force)
     return outputs.claim_folder(out, force=force, inputs=inputs)

@@ -667,14 +667,22 @@ def claim_file(path: str | os.PathLike, *, force: bool = False, inputs: Iterable
         raise OutputError(f"{path}: cannot write: {path.parent} is not a folder")
     sweep_temps(path.parent)
     check_writer(path)
-    if path.exists() or path.is_symlink():
-        if not force:
-            raise OutputError(f"{path}: exists; pass --force to replace it (lsgan replaces only files it wrote)")
-        if not is_ours(path):
-            raise OutputError(f"{path}: exists and is not a file lsgan wrote (or it was changed since); "
-                              "not replaced, even with --force")
+    check_replaceable([path], force=force)
     reserve(path)
     return path
+
+
+def check_replaceable(paths: Iterable[str | os.PathLike], *, force: bool = False) -> None:
+    """Refuse, before anything is written, the first of ``paths`` that exists and may not be replaced: any without
+    ``force``, one lsgan did not write (or that changed since) even with it. A command writing several files checks
+    them all first, so that a refusal leaves none of them written."""
+    for path in map(Path, paths):
+        if path.exists() or path.is_symlink():
+            if not force:
+                raise OutputError(f"{path}: exists; pass --force to replace it (lsgan replaces only files it wrote)")
+            if not is_ours(path):
+                raise OutputError(f"{path}: exists and is not a file lsgan wrote (or it was changed since); "
+                                  "not replaced, even with --force")
 
 
 def foreign(folder: Path) -> list[Path]:

@@ -817,7 +817,8 @@ def test_all_failed_inputs_are_reported_by_reason(tmp_path: Path) -> None:
 
 
 def test_force_replaces_only_lsgan_files(pipe: Path, tmp_path: Path) -> None:
-    """generate --force into an earlier run's folder clears that run's files and keeps the user's."""
+    """generate --force into an earlier run's folder clears that run's files and keeps the user's; a new motion
+    whose file name is the user's is refused before anything of the new run is written."""
     out = tmp_path / "gen"
     assert lsgan(*generate_args(pipe, out, "--num", 3), cwd=tmp_path).returncode == 0
     (out / "my_edit_joints.txt").write_text("mine")
@@ -825,6 +826,7 @@ def test_force_replaces_only_lsgan_files(pipe: Path, tmp_path: Path) -> None:
     edited.write_bytes(edited.read_bytes() + b"\0")  # the user changed it: it is theirs now
     res = lsgan(*generate_args(pipe, out, "--num", 1, "--force"), cwd=tmp_path)
     assert res.returncode == 1 and "not a file lsgan wrote" in res.stderr  # same name as a new motion: refused
+    assert len(list(out.glob("*.npy"))) == 6 and (out / "manifest.json").exists()  # refused before anything changed
     edited.unlink()
     res = lsgan(*generate_args(pipe, out, "--num", 1, "--force"), cwd=tmp_path)
     assert res.returncode == 0, res.stderr

@@ -85,7 +85,8 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
     """Generate motions from sentences or action labels: latents from the generator (a GAN pass, or DDIM steps
     of a diffusion denoiser), then one VAE decoder pass."""
     from lsgan.data.clip import ClipError
-    from lsgan.generation import Request, claim_generation, read_prompts, write_generation
+    from lsgan.generation import (Request, claim_generation, generation_files, motion_stems, read_prompts,
+                                  write_generation)
 
     if frames is not None and seconds is not None:
         raise click.UsageError("give --frames or --seconds, not both")
@@ -129,7 +130,8 @@ def generate(gan, vae, runtime, int8, texts, prompts, actions, timeline, overlap
                                               requests, _reach_of(runtime, gan, vae, int8)) if controlled else (None, None)
         inputs = [p for p in (vae, prompts, path_file, continue_from, *(inbetween or ())) if p] + [
             _keyframe_file(k) for k in keyframes] + [m for m in (keyframe_map,) if m and m.lower().endswith(".json")]
-        claim_generation(output, gan, *inputs, force=force)
+        stems = motion_stems([r for r in requests for _ in range(num)])
+        claim_generation(output, gan, *inputs, force=force, files=generation_files(stems, raw_joints))
         if runtime == "onnx":
             from lsgan.deploy.runtime import generate_onnx
 
