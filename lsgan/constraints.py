@@ -158,10 +158,10 @@ def _check_coordinates(a: np.ndarray, what: str) -> None:
 
 
 def _check_start(point: np.ndarray, what: str) -> None:
-    """The root's ground point on frame 0, when set, is the origin: every motion starts there."""
-    if not np.isnan(point).any() and np.abs(point).max() > START_TOLERANCE:
-        raise ValueError(f"{what} on frame 0 is the motion's start, the origin (0, 0), not "
-                         f"({point[0]:.3f}, {point[1]:.3f})")
+    """The root's ground point on frame 0, each coordinate that is set, is the origin: every motion starts there."""
+    if (np.abs(np.nan_to_num(np.asarray(point, np.float64))) > START_TOLERANCE).any():  # any set coordinate
+        shown = ", ".join("free" if np.isnan(v) else f"{v:.3f}" for v in point)
+        raise ValueError(f"{what} on frame 0 is the motion's start, the origin (0, 0), not ({shown})")
 
 
 def path_points(waypoints: np.ndarray, frames: int, fps: float = 20.0) -> np.ndarray:
@@ -442,14 +442,16 @@ def meet(features: np.ndarray, c: Constraints) -> np.ndarray:
 
 def on_skeleton(pose: np.ndarray, rigid: np.ndarray) -> np.ndarray:
     """A pose (22, 3) of any skeleton (a BVH rig's) retargeted onto a rigid motion's (T, 22, 3): its bone
-    directions at the motion's bone lengths and branching layout (lsgan.motion.rigid.pose), the lowest foot kept at
-    the pose's own height."""
+    directions at the motion's bone lengths and branching layout (lsgan.motion.rigid.pose), the lowest foot as high
+    above the ground as in the pose, in proportion to the legs (whatever the pose's units)."""
+    from lsgan.data.skeleton import bone_lengths
     from lsgan.motion.rigid import pose as rigid_pose, rigid_offsets
 
     src = np.asarray(pose, np.float64)
     out = rigid_pose(src[None], rigid_offsets(np.asarray(rigid, np.float64)))[0]
-    feet = [7, 8, 10, 11]
-    return out + [0.0, src[feet, 1].min() - out[feet, 1].min(), 0.0]
+    feet, legs = [7, 8, 10, 11], [1, 4, 7, 2, 5, 8]
+    scale = bone_lengths(out)[legs].sum() / max(bone_lengths(src)[legs].sum(), 1e-9)  # the source's units and size
+    return out + [0.0, scale * src[feet, 1].min() - out[feet, 1].min(), 0.0]
 
 
 def _placed(poses: dict[int, np.ndarray], rigid: np.ndarray) -> dict[int, np.ndarray]:
@@ -684,6 +686,7 @@ def read_bvh_pose(spec: str, frames: int, joint_map: str | None = None) -> tuple
     joint: lsgan.data.joint_maps), heights from the clip's floor (its lowest foot over all frames)."""
     from lsgan.data.bvh import forward_kinematics, read_bvh
     from lsgan.data.clip import ClipError
+    from lsgan.data.skeleton import bone_lengths
     from lsgan.data.joint_maps import PRESETS, apply_joint_map, get_joint_map
     from lsgan.errors import reading
 
@@ -699,6 +702,8 @@ def read_bvh_pose(spec: str, frames: int, joint_map: str | None = None) -> tuple
     bvh = read_bvh(path)
     if not 0 <= k < len(bvh.motion):
         raise ValueError(f"{path}: has {len(bvh.motion)} frames (0..{len(bvh.motion) - 1}), not a frame {k}")
+    if joint_map and joint_map not in PRESETS and not Path(joint_map).is_file():
+        raise ValueError(f"--keyframe-map {joint_map!r}: neither a preset ({', '.join(PRESETS)}) nor a JSON file")
     maps = {joint_map: get_joint_map(joint_map, None) if joint_map in PRESETS else get_joint_map("bandai", joint_map)} \
         if joint_map else PRESETS
     tried = []
@@ -707,12 +712,21 @@ def read_bvh_pose(spec: str, frames: int, joint_map: str | None = None) -> tuple
             joints = apply_joint_map(forward_kinematics(bvh), bvh.names, jmap, str(path))
             break
         except ClipError as e:
-            tried.append(f"{name}: {str(e).split(': ', 1)[-1]}")
+            missing = re.search(r"needs joints (\[[^]]*\])", str(e))
+            names = re.findall(r"'([^']*)'", missing[1]) if missing else []
+            tried.append(f"{name} lacks {', '.join(names[:3])}" + (f" and {len(names) - 3} more" if len(names) > 3
+                                                                      else "") if names else
+                         f"{name}: {str(e).split(': ', 1)[-1][:80]}")
     else:
-        raise ValueError(f"{path}: no joint map fits its joints ({'; '.join(tried)[:300]}); give --keyframe-map")
+        hint = "" if joint_map else "; give --keyframe-map"
+        raise ValueError(f"{path}: no joint map fits its joints ({'; '.join(tried)}){hint}")
     with reading(path, "a BVH pose"):
-        pose = joints[k] - [0.0, joints[:, [7, 8, 10, 11], 1].min(), 0.0]
-        return f, facing_frame(whole_pose(pose).astype(np.float64)).astype(np.float32)
+        pose = whole_pose(joints[k] - [0.0, joints[:, [7, 8, 10, 11], 1].min(), 0.0]).astype(np.float64)
+        short = np.nonzero(bone_lengths(pose)[1:] < 1e-3)[0]
+        if len(short):
+            raise ValueError(f"its bone to {JOINT_NAMES[short[0] + 1]} has no length through this joint map (two "
+                             "joints mapped to one place)")
+        return f, facing_frame(pose).astype(np.float32)
 
 
 def whole_pose(pose) -> np.ndarray:

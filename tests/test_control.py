@@ -388,10 +388,15 @@ def test_ik_stretches_towards_an_unreachable_joint_and_keeps_free_coordinates():
     target[15, 1] = pose[15, 1] - 0.1  # only the head's height
     out = reach_pose(pose, target)
     assert abs(out[15, 1] - target[15, 1]) < 1e-4
-    target[15, 1] = pose[15, 1] + 0.15  # higher than the spine reaches: the body rises, the feet stay
+    target[15, 1] = pose[15, 1] + 0.15  # higher than the spine reaches: the body rises as far as the legs let it
     out = reach_pose(pose, target)
-    assert abs(out[15, 1] - target[15, 1]) < 1e-4 and out[0, 1] > pose[0, 1] + 0.01
+    assert out[0, 1] >= pose[0, 1] - 1e-9 and out[15, 1] > pose[15, 1] + 0.1  # straight legs: no rise left
     assert np.abs(out[[10, 11]] - pose[[10, 11]]).max() < 1e-4
+    target = np.full((22, 3), np.nan)
+    target[0, 1] = 0.3  # a deep crouch: the ankles and feet stay, the knees bend up, not through the floor
+    out = reach_pose(pose, target)
+    assert abs(out[0, 1] - 0.3) < 1e-9 and np.abs(out[[7, 8, 10, 11]] - pose[[7, 8, 10, 11]]).max() < 1e-4
+    assert out[[4, 5], 1].min() >= 0.05 - 1e-9
 
 
 def test_a_keyframe_of_some_joints_is_met_through_ik_in_the_motion_of_record(loaded):
@@ -462,3 +467,18 @@ def test_a_bvh_frame_is_a_pose_taken_wherever_the_motion_is(loaded):
     cosines = [a @ b / np.linalg.norm(a) / np.linalg.norm(b) for a, b in bones]
     assert min(cosines) > np.cos(np.radians(5)), np.degrees(np.arccos(np.clip(cosines, -1, 1))).max()
     assert m.control["poses_m"]["max"] < 0.02 and np.allclose(g.control["poses"]["30"], pose)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), units=st.sampled_from([0.01, 1.0, 100.0]))
+def test_a_pose_is_retargeted_whatever_its_units(seed, units):
+    """A pose in centimetres, metres or hundreds of metres lands on the motion's skeleton at the same place: bone
+    directions from the pose, lengths and the feet's height in proportion to the motion's legs."""
+    from lsgan.constraints import on_skeleton
+    from lsgan.data.skeleton import bone_lengths
+
+    pose, motion = _chain_pose(seed), np.stack([_chain_pose(seed + 1)] * 3)
+    pose[:, 1] += 0.05  # standing 5 cm above its floor
+    got = on_skeleton(pose * units, motion)
+    assert np.allclose(got, on_skeleton(pose, motion), atol=1e-9)
+    assert np.allclose(bone_lengths(got), bone_lengths(motion[0]), atol=1e-9)

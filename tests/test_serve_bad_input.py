@@ -153,6 +153,10 @@ CASES = [
          422, "sets no coordinate"),
     Case("keyframe-unicode-digit-joint", "POST", GEN, J(text="walk", keyframes=[
         {"frame": 5, "joints": {"\u00b2": [0, 1, 0]}}]), 422, "unknown joint"),
+    Case("duplicate-key", "POST", GEN, b'{"text": "walk", "frames": 80, "frames": 90}', 400,
+         "the key 'frames' is given twice"),
+    Case("keyframe-frame-0-root-x-only", "POST", GEN, J(text="walk", keyframes=[
+        {"frame": 0, "joints": {"pelvis": [0.5, None, None]}}]), 422, "on frame 0 is the motion's start"),
     Case("path-one-point", "POST", GEN, J(text="walk", path=[[0, 0]]), 422, "a path needs at least two points"),
     Case("num-over-control-limit", "POST", GEN, J(text="walk", num=3, path=[[0, 0], [0.05, 0]]), 422,
          "num must be 1 to 2 with constraints"),

@@ -226,10 +226,15 @@ def _read_constraints(path_and_facing, keyframes_and_map, continue_from, inbetwe
         path_file, facing = path_and_facing
         keyframes, keyframe_map = keyframes_and_map
         path = read_path(path_file, frames) if path_file else None
-        points = dict(read_keyframe(k, frames) for k in keyframes if not is_bvh_keyframe(k))
-        poses = dict(read_bvh_pose(k, frames, keyframe_map) for k in keyframes if is_bvh_keyframe(k))
-        if len(points) + len(poses) < len(keyframes) or set(points) & set(poses):
-            raise ValueError("two --keyframe options name the same frame")
+        read = [(k, (read_bvh_pose(k, frames, keyframe_map), True) if is_bvh_keyframe(k) else
+                 (read_keyframe(k, frames), False)) for k in keyframes]
+        named = [f for _, ((f, _), _) in read]
+        twice = next((f for f in named if named.count(f) > 1), None)
+        if twice is not None:
+            raise ValueError(f"two --keyframe options name frame {twice}: "
+                             f"{', '.join(k for k, ((f, _), _) in read if f == twice)}")
+        points = {f: p for _, ((f, p), bvh) in read if not bvh}
+        poses = {f: p for _, ((f, p), bvh) in read if bvh}
         origin = ", ".join([path_file] * bool(path_file) + list(keyframes))
         constraints = Constraints(frames, path=path, keyframes=points, poses=poses, facing=facing, origin=origin)
     check_reach(constraints, *reach)

@@ -24,6 +24,7 @@ CHAINS = ((3, 6, 9, 12, 15), (3, 6, 9, 13), (3, 6, 9, 14), (13, 16, 18, 20), (14
 LEGS = ((1, 4, 7, 10), (2, 5, 8, 11))
 HELD = (1, 2, 3)  # the pelvis's children: set, they move the whole body (when the root is free)
 LEG_FEET = (10, 11)
+KNEE_FLOOR = 0.05  # metres: a solved knee lower than this is turned up (_highest_knee)
 HIP_CLEARANCE = 0.15  # metres: the lowest the pelvis is lowered to above the feet when a spine target pulls it
 
 
@@ -64,7 +65,8 @@ def _solve(out: np.ndarray, target: np.ndarray) -> np.ndarray:
         leg = chain in LEGS
         goals = {j: np.where(np.isnan(target[j]), out[j], target[j]) for j in chain[1:] if not np.isnan(target[j]).all()}
         if leg and chain[-1] not in goals and np.abs(out[chain[-1]] - planted[chain[-1]]).max() > 1e-9:
-            goals[chain[-1]] = planted[chain[-1]]  # the body rose or sank: the foot stays on its ground
+            for j in chain[2:]:  # the body rose or sank: the ankle and foot stay on their ground
+                goals.setdefault(j, planted[j])
         base = 0
         for k in range(1, len(chain)):
             if chain[k] not in goals:
@@ -78,18 +80,38 @@ def _solve(out: np.ndarray, target: np.ndarray) -> np.ndarray:
                 out += _lift(out, planted, _excess(out[segment], goals[chain[k]]))
             before = out.copy()
             out[segment] = fabrik(out[segment], goals[chain[k]])
+            if leg and len(segment) == 3 and out[segment[1], 1] < KNEE_FLOOR:
+                out[segment[1]] = _highest_knee(out[segment])
             _carry(out, before, set(segment))
             base = k
     return out
 
 
+def _highest_knee(points: np.ndarray) -> np.ndarray:
+    """The middle joint of a hip-knee-ankle chain (3, 3) turned about the hip-ankle line to its highest place:
+    a knee that FABRIK folded under the floor (a deep crouch) bends up instead, both bones kept."""
+    hip, knee, ankle = points
+    l1, l2 = np.linalg.norm(knee - hip), np.linalg.norm(ankle - knee)
+    axis = ankle - hip
+    d = np.linalg.norm(axis)
+    if d < 1e-9:
+        return knee
+    axis /= d
+    along = (d * d + l1 * l1 - l2 * l2) / (2 * d)
+    radius = np.sqrt(max(l1 * l1 - along * along, 0.0))
+    up = np.array([0.0, 1.0, 0.0]) - axis[1] * axis
+    if np.linalg.norm(up) < 1e-9:
+        return knee
+    return hip + along * axis + radius * up / np.linalg.norm(up)
+
+
 def _lift(pose: np.ndarray, planted: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """The largest part of ``shift`` (3,) the body can move by with both legs still reaching their planted feet
-    (within :data:`REACH` of their length) and the hips at least :data:`HIP_CLEARANCE` above the feet."""
-    lengths = [np.linalg.norm(np.diff(pose[list(leg)], axis=0), axis=-1).sum() for leg in LEGS]
+    """The largest part of ``shift`` (3,) the body can move by with both legs still reaching their planted ankles
+    (within :data:`REACH` of hip to ankle) and the hips at least :data:`HIP_CLEARANCE` above the feet."""
+    lengths = [np.linalg.norm(np.diff(pose[list(leg[:3])], axis=0), axis=-1).sum() for leg in LEGS]  # hip to ankle
     for t in np.linspace(1.0, 0.0, 41):
         moved = pose + t * shift
-        if all(np.linalg.norm(planted[leg[-1]] - moved[leg[0]]) <= REACH * n for leg, n in zip(LEGS, lengths)) \
+        if all(np.linalg.norm(planted[leg[2]] - moved[leg[0]]) <= REACH * n for leg, n in zip(LEGS, lengths)) \
                 and moved[0, 1] >= planted[list(LEG_FEET), 1].max() + HIP_CLEARANCE:
             return t * shift
     return np.zeros(3)

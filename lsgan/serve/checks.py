@@ -47,8 +47,15 @@ def parse_json(body: bytes) -> dict:
 
     if not body.strip():
         raise ApiError(400, "empty body: send a JSON object such as {\"text\": \"a person walks forward\"}")
+    def once(pairs: list) -> dict:
+        keys = [k for k, _ in pairs]
+        twice = next((k for k in keys if keys.count(k) > 1), None)
+        if twice is not None:
+            raise ValueError(f"the key {short(twice)} is given twice (one value each)")
+        return dict(pairs)
+
     try:
-        obj = json.loads(body, parse_constant=no_constants)
+        obj = json.loads(body, parse_constant=no_constants, object_pairs_hook=once)
     except RecursionError:
         raise ApiError(400, "malformed JSON: nested too deeply") from None
     except ValueError as e:  # JSONDecodeError, UnicodeDecodeError (not UTF-8), NaN / Infinity
