@@ -1,7 +1,9 @@
-"""Constraints on a motion: a root path on the ground and keyframed joints; read, checked, closed and measured.
+"""Constraints on a motion: a root path on the ground, keyframed joints and poses; read, checked, met and measured.
 
-Torch-free (numpy), so that every runtime shares it: ``lsgan.control`` meets constraints by optimisation, then
-``close_root`` puts the root on the path and keyframes exactly and ``measure`` says how far the motion of record is from each.
+Torch-free (numpy), so that every runtime shares it: ``lsgan.control`` approaches constraints by optimisation (torch
+only), then :func:`meet` meets them (the root closed onto the path and keyframes, keyframes of some joints completed
+by inverse kinematics, poses retargeted, every pose warped in) and ``measure`` says how far the motion of record is
+from each.
 
 Coordinates are the motion's own: metres, Y up, the root at the origin on frame 0 facing +z (every decoded motion
 starts there), 20 fps.
@@ -601,21 +603,10 @@ def _text(path: Path) -> str:
 
 
 def _json(text: str):
-    """Parsed JSON without NaN or Infinity (a free coordinate is null) and without a key given twice."""
-    def no_constant(name: str):
-        raise ValueError(f"{name} is not JSON (leave a coordinate free with null)")
+    """Parsed JSON of a constraint file (:func:`lsgan.jsonread.strict_json`): a free coordinate is null."""
+    from lsgan.jsonread import strict_json
 
-    def once(pairs: list) -> dict:
-        keys = [k for k, _ in pairs]
-        twice = next((k for k in keys if keys.count(k) > 1), None)
-        if twice is not None:
-            raise ValueError(f"{twice!r} is given twice")
-        return dict(pairs)
-
-    try:
-        return json.loads(text, parse_constant=no_constant, object_pairs_hook=once)
-    except RecursionError:
-        raise ValueError("JSON nested too deeply") from None
+    return strict_json(text, " (leave a coordinate free with null)")
 
 
 def _rows(path: Path) -> np.ndarray:

@@ -1,7 +1,6 @@
 """A POST /v1/generate body -> an engine :class:`Item`, or an :class:`ApiError` with a one-line reason."""
 from __future__ import annotations
 
-import json
 import secrets
 import unicodedata
 
@@ -41,24 +40,15 @@ def short(value, limit: int = 40) -> str:
 
 
 def parse_json(body: bytes) -> dict:
-    """The body as a JSON object; 400 for malformed JSON (NaN and Infinity included), 422 for another type."""
-    def no_constants(name: str):
-        raise ValueError(f"{name} is not JSON")
+    """The body as a JSON object; 400 for malformed JSON (NaN, Infinity and a key given twice included), 422 for
+    another type."""
+    from lsgan.jsonread import strict_json
 
     if not body.strip():
         raise ApiError(400, "empty body: send a JSON object such as {\"text\": \"a person walks forward\"}")
-    def once(pairs: list) -> dict:
-        keys = [k for k, _ in pairs]
-        twice = next((k for k in keys if keys.count(k) > 1), None)
-        if twice is not None:
-            raise ValueError(f"the key {short(twice)} is given twice (one value each)")
-        return dict(pairs)
-
     try:
-        obj = json.loads(body, parse_constant=no_constants, object_pairs_hook=once)
-    except RecursionError:
-        raise ApiError(400, "malformed JSON: nested too deeply") from None
-    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError (not UTF-8), NaN / Infinity
+        obj = strict_json(body)
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError (not UTF-8), NaN / Infinity, a key twice, nesting
         raise ApiError(400, f"malformed JSON: {str(e).splitlines()[0][:200]}") from None
     if not isinstance(obj, dict):
         raise ApiError(422, f"the body must be a JSON object such as {{\"text\": \"a person walks\"}}, "
