@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from lsgan.models.checkpoint import checkpoint_reader, load_weights
+from lsgan.models.dropout import EncoderLayer
 from lsgan.models.gan import destandardise  # noqa: F401  (re-exported: the same latent space as the GANs')
 from lsgan.models.vae import PositionalEncoding, SkipTransformer
 
@@ -148,7 +149,7 @@ class LatentDenoiser(nn.Module):
         self.pos = PositionalEncoding(d, 3, "learned")  # MLD: learned, uniform-initialised
         layer = {"d_model": d, "nhead": cfg.num_heads, "dim_feedforward": cfg.ff_size, "dropout": cfg.dropout,
                  "activation": cfg.activation, "batch_first": True, "norm_first": cfg.norm_first}
-        self.encoder = SkipTransformer(lambda: nn.TransformerEncoderLayer(**layer), cfg.num_layers, d)
+        self.encoder = SkipTransformer(lambda: EncoderLayer(**layer), cfg.num_layers, d)
         self.latent_out = nn.Linear(d, cfg.latent_dim)
         self.d_model = d
 

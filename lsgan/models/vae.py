@@ -30,6 +30,7 @@ from torch import nn
 from lsgan.models.attention import attend
 from lsgan.models.checkpoint import checkpoint_reader, load_weights
 from lsgan.models.decoder_head import DecoderHead
+from lsgan.models.dropout import DecoderLayer, EncoderLayer
 
 
 @dataclass
@@ -191,8 +192,8 @@ class MotionVAE(nn.Module):
         self.dec_pos = PositionalEncoding(d, c.max_len, c.position_embedding)
         layer = dict(d_model=d, nhead=c.num_heads, dim_feedforward=c.ff_size, dropout=c.dropout,
                      activation=c.activation, batch_first=True, norm_first=c.norm_first)
-        self.encoder = SkipTransformer(lambda: nn.TransformerEncoderLayer(**layer), c.num_layers, d)
-        self.decoder = SkipTransformer(lambda: nn.TransformerDecoderLayer(**layer), c.num_layers, d)
+        self.encoder = SkipTransformer(lambda: EncoderLayer(**layer), c.num_layers, d)
+        self.decoder = SkipTransformer(lambda: DecoderLayer(**layer), c.num_layers, d)
         same = c.latent_dim == d
         self.to_mu = nn.Identity() if same else nn.Linear(d, c.latent_dim)
         self.to_logvar = nn.Identity() if same else nn.Linear(d, c.latent_dim)
