@@ -106,3 +106,68 @@ def test_the_models_build_every_transformer_layer_here():
     built = re.compile(r"nn\.Transformer(Encoder|Decoder)Layer\(")
     others = [str(f.relative_to(ROOT)) for f in (ROOT / "lsgan").rglob("*.py") if built.search(f.read_text())]
     assert others == [], others
+
+
+def _enc(x, **kw):
+    return lambda m: m(x, **kw)
+
+
+def _dec(x, mem, **kw):
+    return lambda m: m(x, mem, **kw)
+
+
+_X, _MEM = torch.randn(2, 5, 32), torch.randn(2, 3, 32)
+_ALL = torch.tensor([[False] * 5, [True] * 5])  # the second sample: every key hidden
+CALLS = {  # what a user may hand torch's layers in training; ours must answer as torch does (values or error)
+    "a sample with every key padded (encoder)": (EncoderLayer, _enc(_X, src_key_padding_mask=_ALL)),
+    "a sample with every frame padded (decoder)": (DecoderLayer, _dec(_X, _MEM, tgt_key_padding_mask=_ALL)),
+    "a memory with every key padded": (DecoderLayer, _dec(_X, _MEM, memory_key_padding_mask=torch.tensor(
+        [[False] * 3, [True] * 3]))),
+    "unbatched (S, E)": (EncoderLayer, _enc(torch.randn(7, 32))),
+    "unbatched decoder": (DecoderLayer, _dec(torch.randn(7, 32), torch.randn(3, 32))),
+    "no samples": (EncoderLayer, _enc(torch.randn(0, 7, 32))),
+    "no frames": (EncoderLayer, _enc(torch.randn(3, 0, 32))),
+    "an empty memory": (DecoderLayer, _dec(_X, torch.randn(2, 0, 32))),
+    "causal hint without a mask": (EncoderLayer, _enc(_X, is_causal=True)),
+    "causal decoder hint without a mask": (DecoderLayer, _dec(_X, _MEM, tgt_is_causal=True)),
+    "an integer memory mask": (DecoderLayer, _dec(_X, _MEM, memory_key_padding_mask=torch.zeros(2, 3, dtype=torch.int64))),
+    "a memory mask of the wrong shape": (DecoderLayer, _dec(_X, _MEM, memory_key_padding_mask=torch.zeros(1, 3, dtype=torch.bool))),
+    "a causal mask": (EncoderLayer, _enc(_X, src_mask=nn.Transformer.generate_square_subsequent_mask(5), is_causal=True)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CALLS))
+def test_training_layers_answer_odd_calls_as_torchs(case):
+    """Without drops (p=0) our training layers give torch's values, shapes and errors for each odd call."""
+    cls, call = CALLS[case]
+    ref = nn.TransformerEncoderLayer if cls is EncoderLayer else nn.TransformerDecoderLayer
+    ours, theirs = _pair(cls, ref, 0.0, norm_first=True)
+    ours.train(), theirs.train()
+    outcomes = []
+    for layer in (ours, theirs):
+        try:
+            outcomes.append(call(layer))
+        except (RuntimeError, ValueError, AssertionError) as e:
+            outcomes.append(type(e))
+    a, b = outcomes
+    if isinstance(b, type):
+        assert a is b, f"{case}: torch raises {b.__name__}, ours gave {a if isinstance(a, type) else a.shape}"
+    else:
+        assert not isinstance(a, type), f"{case}: ours raised {a.__name__}"
+        assert a.shape == b.shape and torch.allclose(a, b, atol=1e-5, equal_nan=True), case
+
+
+@pytest.mark.parametrize("p", [-0.1, 1.5, float("nan")])
+def test_impossible_probabilities_are_refused(p):
+    with pytest.raises(ValueError, match="between 0 and 1"):
+        dropout(torch.ones(3), p)
+    with pytest.raises(ValueError, match="between 0 and 1"):
+        keep_mask((3,), p)
+
+
+def test_dropping_everything_stays_in_the_graph():
+    x = torch.tensor([1.0, float("nan"), 2.0], requires_grad=True)
+    out = dropout(x, 1.0)
+    assert out.requires_grad and torch.isnan(out[1]) and out[0] == 0 == out[2]
+    out.nansum().backward()
+    assert torch.equal(x.grad, torch.zeros(3))

@@ -8,8 +8,10 @@ the inverse of the keep probability, as torch's dropout does. The masks come fro
 ``torch.manual_seed`` and a saved RNG state make a run repeat exactly.
 
 The layers are ``nn.TransformerEncoderLayer`` and ``nn.TransformerDecoderLayer`` with the same parameters (a
-checkpoint of either loads in the other) and torch's own code in eval mode; training replaces only the draws.
-On a GPU torch's fused dropout is already cheap, and the layers are torch's there too.
+checkpoint of either loads in the other) and torch's own code in eval mode; training replaces only the draws, for
+batched, non-empty inputs with at most a (B,S) padding mask: any other call (unbatched or empty inputs, attention
+masks, causal hints) is torch's own code, with its values and its errors. On a GPU torch's fused dropout is already
+cheap, and the layers are torch's there too.
 """
 from __future__ import annotations
 
@@ -38,13 +40,15 @@ def keep_mask(shape: torch.Size | tuple[int, ...], p: float, device: torch.devic
 
 def dropout(x: torch.Tensor, p: float, training: bool = True) -> torch.Tensor:
     """``F.dropout(x, p, training)`` with :func:`keep_mask`'s draws on the CPU; torch's own elsewhere."""
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"dropout probability has to be between 0 and 1, but got {p}")
     if not training or p == 0.0:
         return x
     if x.device.type != "cpu":
         return F.dropout(x, p, training)
     dropped = round(p * LEVELS)
     if dropped >= LEVELS:
-        return torch.zeros_like(x)
+        return x * 0.0  # as torch: still in the graph, NaN stays NaN
     scale = keep_mask(x.shape, p, x.device).to(x.dtype).mul_(LEVELS / (LEVELS - dropped))  # 0 or 1/keep
     return x * scale
 
@@ -69,13 +73,30 @@ def attention(attn: nn.MultiheadAttention, x: torch.Tensor, memory: torch.Tensor
     if key_padding_mask is not None:  # bool (True = ignore) or torch's additive form of it (0 / -inf)
         pad = key_padding_mask[:, None, None, :]
         scores = scores.masked_fill(pad, float("-inf")) if pad.dtype == torch.bool else scores + pad
-    weights = dropout(torch.softmax(scores, dim=-1), attn.dropout, attn.training)
+    weights = torch.softmax(scores, dim=-1)
+    if key_padding_mask is not None and (hidden := _all_masked(key_padding_mask)).any():
+        weights = weights.masked_fill(hidden[:, None, None, None], 0.0)  # as torch: a query that sees no key gets 0
+    weights = dropout(weights, attn.dropout, attn.training)
     return attn.out_proj((weights @ v).transpose(1, 2).reshape(B, T, d))
 
 
-def _cheap(layer: nn.Module, x: torch.Tensor, attn: nn.MultiheadAttention, attn_mask) -> bool:
-    """Whether this call takes the cheap draws: training, on the CPU, batch first, no attention mask."""
-    return layer.training and x.device.type == "cpu" and attn.batch_first and attn_mask is None and attn._qkv_same_embed_dim
+def _all_masked(key_padding_mask: torch.Tensor) -> torch.Tensor:
+    """(B,) True where every key is hidden (a bool mask's True, an additive mask's -inf)."""
+    hidden = key_padding_mask if key_padding_mask.dtype == torch.bool else key_padding_mask == float("-inf")
+    return hidden.all(dim=-1)
+
+
+def _cheap(layer: nn.Module, attn: nn.MultiheadAttention, x: torch.Tensor, memory: torch.Tensor, attn_mask,
+           key_padding_mask, is_causal: bool) -> bool:
+    """Whether this call takes the cheap draws: training on the CPU, batch first, non-empty (B,T,d) and (B,S,d),
+    no attention mask or causal hint, a (B,S) bool or float padding mask. Anything else is torch's own code, with
+    torch's errors."""
+    plain = (layer.training and x.device.type == "cpu" and attn.batch_first and attn._qkv_same_embed_dim
+             and attn_mask is None and not is_causal and x.dim() == memory.dim() == 3 and x.numel() and memory.numel()
+             and x.shape[0] == memory.shape[0])
+    return bool(plain) and (key_padding_mask is None or (
+        (key_padding_mask.dtype == torch.bool or key_padding_mask.is_floating_point())
+        and tuple(key_padding_mask.shape) == (memory.shape[0], memory.shape[1])))
 
 
 class _CheapDraws:
@@ -89,7 +110,7 @@ class _CheapDraws:
                 setattr(self, name, Dropout(old.p))
 
     def _sa_block(self, x, attn_mask, key_padding_mask, is_causal=False):
-        if not _cheap(self, x, self.self_attn, attn_mask):
+        if not _cheap(self, self.self_attn, x, x, attn_mask, key_padding_mask, is_causal):
             return super()._sa_block(x, attn_mask, key_padding_mask, is_causal)
         return self.dropout1(attention(self.self_attn, x, x, key_padding_mask))
 
@@ -102,6 +123,6 @@ class DecoderLayer(_CheapDraws, nn.TransformerDecoderLayer):
     """``nn.TransformerDecoderLayer`` whose dropout masks are :func:`keep_mask`'s on the CPU."""
 
     def _mha_block(self, x, mem, attn_mask, key_padding_mask, is_causal=False):
-        if not _cheap(self, x, self.multihead_attn, attn_mask):
+        if not _cheap(self, self.multihead_attn, x, mem, attn_mask, key_padding_mask, is_causal):
             return super()._mha_block(x, mem, attn_mask, key_padding_mask, is_causal)
         return self.dropout2(attention(self.multihead_attn, x, mem, key_padding_mask))
