@@ -102,6 +102,7 @@ def test_the_objective_adds_the_weighted_terms_and_mld_is_one_setting():
     assert float(mld["total"]) == pytest.approx(float(out["recon"] + out["recon_joints"]), rel=1e-6)
     assert VAETrainConfig(loss="mld").weights() == LossWeights("smoothl1", joints=1.0)
     assert not VAETrainConfig().weights().uses_joints
+    assert VAETrainConfig(joint_weight=0.25).weights() == LossWeights("mse", joints=0.25)
 
 
 def test_the_learning_rate_schedules():
@@ -112,7 +113,8 @@ def test_the_learning_rate_schedules():
     lrs = [cfg.lr_at(s) for s in range(10, 110)]
     assert all(a >= b for a, b in zip(lrs, lrs[1:]))
     assert replace(cfg, lr_schedule="constant").lr_at(100) == 1e-3
-    for bad in (dict(lr_schedule="linear"), dict(bone_weight=-1.0), dict(velocity_weight=math.nan)):
+    for bad in (dict(lr_schedule="linear"), dict(bone_weight=-1.0), dict(velocity_weight=math.nan),
+                dict(joint_weight=math.inf), dict(loss="mld", joint_weight=0.5)):
         with pytest.raises(ValueError):
             VAETrainConfig(**bad)
 

@@ -2,9 +2,10 @@
 
 The objective (:mod:`lsgan.train.vae_loss`) is ``VAETrainConfig.loss`` for the features: "mse", MSE on the
 normalised features; or "mld", MLD's configuration (SmoothL1 on the features + SmoothL1 on the joints recovered
-from them, weight 1 each), which the paper trains with; plus the kinematic terms the config weights (velocity,
-acceleration, bone lengths, foot contact) and KL. The learning rate is constant or follows a cosine to 0 after
-a linear warm-up (``lr_schedule``), computed from the optimiser's own step count so a resume continues it.
+from them, weight 1 each), which the paper trains with (``joint_weight`` adds that joint term to "mse"); plus the
+kinematic terms the config weights (velocity, acceleration, bone lengths, foot contact) and KL. The learning rate
+is constant or follows a cosine to 0 after a linear warm-up (``lr_schedule``), computed from the optimiser's own
+step count so a resume continues it.
 
 One process: ``train_vae(shards, "runs/vae", model=VAEConfig(...), train=VAETrainConfig(...))``.
 Several: the same call under ``torchrun --nproc_per_node=N``; every process draws its own batches of
@@ -51,6 +52,7 @@ class VAETrainConfig(WindowTrainConfig):
     batch_size: int = 128  # per process
     kl_weight: float = 1e-4
     loss: str = "mse"  # "mse": MSE on the features; "mld": MLD's SmoothL1 on the features and the recovered joints
+    joint_weight: float = 0.0  # with loss "mse": the joints' SmoothL1 term, metres (loss "mld" has MLD's 1)
     velocity_weight: float = 0.0  # joints' velocity error, m/s (lsgan.train.vae_loss)
     accel_weight: float = 0.0  # joints' acceleration error, m/s^2
     bone_weight: float = 0.0  # bone-length error, m
@@ -70,13 +72,16 @@ class VAETrainConfig(WindowTrainConfig):
             raise ValueError(f"kinematic_loss must be one of {', '.join(KINEMATIC)}, not {self.kinematic_loss!r}")
         if self.lr_schedule not in SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(SCHEDULES)}, not {self.lr_schedule!r}")
-        for name in ("velocity_weight", "accel_weight", "bone_weight", "contact_weight", "warmup_steps"):
+        for name in ("joint_weight", "velocity_weight", "accel_weight", "bone_weight", "contact_weight",
+                     "warmup_steps"):
             if not 0 <= getattr(self, name) < math.inf:
                 raise ValueError(f"{name} must be a finite number >= 0, not {getattr(self, name)!r}")
+        if self.loss == "mld" and self.joint_weight:
+            raise ValueError("joint_weight is for loss mse: loss mld weighs the joints 1, as MLD")
 
     def weights(self) -> LossWeights:
         mld = self.loss == "mld"
-        return LossWeights(features="smoothl1" if mld else "mse", joints=1.0 if mld else 0.0,
+        return LossWeights(features="smoothl1" if mld else "mse", joints=1.0 if mld else self.joint_weight,
                            velocity=self.velocity_weight, accel=self.accel_weight, bones=self.bone_weight,
                            contact=self.contact_weight, kl=self.kl_weight, kinematic=self.kinematic_loss)
 
@@ -199,9 +204,8 @@ def _train(env: Env, paths: list[str], mcfg: VAEConfig, cfg: VAETrainConfig) -> 
 
 def _say_changed_objective(env: Env, before: dict, cfg: VAETrainConfig) -> None:
     """Tell a resume what it changes of the objective or the schedule (the run continues with the new values)."""
-    keys = ("loss", "kl_weight", "velocity_weight", "accel_weight", "bone_weight", "contact_weight", "kinematic_loss",
-            "lr",
-            "lr_schedule", "warmup_steps")
+    keys = ("loss", "kl_weight", "joint_weight", "velocity_weight", "accel_weight", "bone_weight", "contact_weight",
+            "kinematic_loss", "lr", "lr_schedule", "warmup_steps")
     defaults = VAETrainConfig()
     changed = [f"{k} {before.get(k, getattr(defaults, k))!r} -> {getattr(cfg, k)!r}" for k in keys
                if before.get(k, getattr(defaults, k)) != getattr(cfg, k)]
