@@ -28,9 +28,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-NONE = {"velocity_weight": 0.0, "accel_weight": 0.0, "bone_weight": 0.0, "contact_weight": 0.0}
+NONE = {"joint_weight": 0.0, "velocity_weight": 0.0, "accel_weight": 0.0, "bone_weight": 0.0, "contact_weight": 0.0}
 MLD = {**NONE, "loss": "mld"}
-ALL = {"loss": "mld", "velocity_weight": 0.5, "accel_weight": 0.02, "bone_weight": 10.0, "contact_weight": 0.5}
+ALL = {**NONE, "loss": "mld", "velocity_weight": 0.5, "accel_weight": 0.02, "bone_weight": 10.0, "contact_weight": 0.5}
 NO_HEAD = {"smooth_output": 0, "rigid_output": False}  # the decoder without lsgan.models.decoder_head
 ROWS = {  # name: (what changes, the VAE train values over the recipe's, the VAE model values over the recipe's)
     "shipped": ("the recipe before issue 32: features-only MSE, 1,000 steps, constant lr",
@@ -42,7 +42,7 @@ ROWS = {  # name: (what changes, the VAE train values over the recipe's, the VAE
     "accel": ("MLD + velocity 0.5 + bones 10 + accel 0.02", {**ALL, "contact_weight": 0.0}, NO_HEAD),
     "all": ("MLD + velocity 0.5 + bones 10 + accel 0.02 + contact 0.5", ALL, NO_HEAD),
     "strong": ("MLD + velocity 1 + bones 20 + accel 0.05 + contact 1",
-               {"loss": "mld", "velocity_weight": 1.0, "accel_weight": 0.05, "bone_weight": 20.0,
+               {**NONE, "loss": "mld", "velocity_weight": 1.0, "accel_weight": 0.05, "bone_weight": 20.0,
                 "contact_weight": 1.0}, NO_HEAD),
     "constant-lr": ("all terms, constant lr (no warm-up, no cosine)",
                     {**ALL, "lr_schedule": "constant", "warmup_steps": 0}, NO_HEAD),
@@ -52,6 +52,8 @@ ROWS = {  # name: (what changes, the VAE train values over the recipe's, the VAE
            NO_HEAD),
     "head": ("features-only MSE, the decoder smoothed (1 pass) and on the data's skeleton",
              {**NONE, "loss": "mse"}, {"smooth_output": 1, "rigid_output": True}),
+    "joints": ("MSE + MLD's joint term 0.2, the decoder smoothed and rigid", {**NONE, "joint_weight": 0.2},
+               {"smooth_output": 1, "rigid_output": True}),
     "recipe": ("the recipe as it is", {}, {}),
 }
 GAN_COLUMNS = ("fid", "r_precision_top3", "mm_dist", "diversity", "foot_skating_ratio", "jerk_m_s3",

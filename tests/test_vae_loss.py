@@ -4,6 +4,7 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -221,3 +222,21 @@ def test_squared_terms_average_the_squared_error():
     assert VAETrainConfig(kinematic_loss="squared").weights().kinematic == "squared"
     with pytest.raises(ValueError, match="kinematic_loss"):
         VAETrainConfig(kinematic_loss="l1")
+
+
+def test_every_row_of_the_fidelity_benchmark_is_a_valid_config_over_the_bandai_recipe():
+    """The ablation's rows override the recipe: a row that inherits a recipe value it contradicts (the joint
+    weight with MLD's loss) would only fail an hour into a benchmark run."""
+    from importlib.util import module_from_spec, spec_from_file_location
+
+    from lsgan.models.vae import VAEConfig
+    from lsgan.recipes import configs, load_recipe
+
+    spec = spec_from_file_location("fidelity", Path(__file__).resolve().parents[1] / "benchmarks" / "fidelity.py")
+    fidelity = module_from_spec(spec)
+    spec.loader.exec_module(fidelity)
+    recipe = load_recipe("bandai")
+    for name, (_, train, model) in fidelity.ROWS.items():
+        _, cfg = configs(recipe, "vae", VAEConfig, VAETrainConfig, model_overrides=model, train_overrides=train)
+        own = train.get("joint_weight", recipe["vae"]["train"].get("joint_weight", 0.0))
+        assert cfg.weights().joints == (1.0 if cfg.loss == "mld" else own), name
