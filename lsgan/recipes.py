@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import reprlib
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -18,6 +19,27 @@ from lsgan.errors import reading
 T = TypeVar("T")
 U = TypeVar("U")
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+
+
+class _Loader(yaml.SafeLoader):
+    """YAML's safe loader that refuses a key given twice in one mapping (PyYAML would keep the last silently)."""
+
+
+def _mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if isinstance(key, (str, int, float, bool)):  # other keys are refused by construct_mapping or the sections
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"the key {_SHORT.repr(key)} is given twice",
+                                                        key_node.start_mark)
+            seen.add(key)
+    return loader.construct_mapping(node, deep)
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
+_SHORT = reprlib.Repr()  # values in error lines: a few items, levels and characters
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict, _SHORT.maxstring, _SHORT.maxother, _SHORT.maxlong = 2, 4, 4, 60, 60, 40
 
 
 class Recipe(dict):
@@ -35,7 +57,7 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
     if not p.is_file():
         raise FileNotFoundError(f"recipe {path} not found (give a YAML file, or a name from {RECIPES})")
     with reading(p, "a recipe (YAML text)", also=(yaml.YAMLError,)):
-        data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+        data = yaml.load(p.read_text(encoding="utf-8"), Loader=_Loader) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{p}: a recipe is a mapping of sections (vae:, gan:, diffusion:, ...)")
     recipe = Recipe(data)
@@ -52,8 +74,8 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
         raise ValueError(f"{where or cls.__name__}: unknown key(s) {unknown}; allowed: {sorted(names)}")
     for f in dataclasses.fields(cls):
         if f.name in values and not _fits(values[f.name], f.type):
-            raise ValueError(f"recipe key {where or cls.__name__}.{f.name}: {values[f.name]!r} is not "
-                             f"{_KINDS.get(str(f.type), f.type)}")
+            raise ValueError(f"recipe key {where or cls.__name__}.{f.name}: {_SHORT.repr(values[f.name])} is not "
+                             f"{_KINDS.get(str(f.type), f.type)}{_exponent_hint(values[f.name])}")
     try:
         return cls(**values)
     except ValueError as e:  # a dataclass's own check: say which section it is
@@ -63,12 +85,32 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
 _KINDS = {"int": "a whole number", "float": "a number", "bool": "true or false", "str": "text"}
 
 
+def _exponent_hint(value: Any) -> str:
+    """YAML 1.1 (PyYAML) reads 2e-1 as text; say how to write it as a number."""
+    if not (isinstance(value, str) and "e" in value.lower() and len(value) < 40):
+        return ""
+    try:
+        float(value)
+    except ValueError:
+        return ""
+    return " (YAML reads exponents without a point and a sign as text: write 2.0e-1, 1.0e+3)"
+
+
 def _fits(value: Any, annotation: Any) -> bool:
-    """Whether a recipe value fits its field's plain annotation (int, float, bool, str); others are not checked."""
+    """Whether a recipe value fits its field's plain annotation (int, float, bool, str); others are not checked.
+    A number is one a float holds (a 400-digit integer is not)."""
     kind = str(getattr(annotation, "__name__", annotation))
-    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    number = isinstance(value, (int, float)) and not isinstance(value, bool) and _is_float(value)
     return {"int": isinstance(value, int) and not isinstance(value, bool), "float": number,
             "bool": isinstance(value, bool), "str": isinstance(value, str)}.get(kind, True)
+
+def _is_float(value: int | float) -> bool:
+    try:
+        float(value)
+    except OverflowError:
+        return False
+    return True
+
 
 def section(recipe: dict[str, Any], name: str) -> dict[str, Any]:
     value = recipe.get(name) or {}
@@ -87,6 +129,12 @@ def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: ty
     r, where = section(recipe, kind), where or kind
     if getattr(recipe, "source", ""):
         where = f"{recipe.source}: {where}"
+    unknown = sorted(map(str, set(r) - {"model", "train"}))
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {_SHORT.repr(unknown)}; a section holds model: and train:")
+    for part in ("model", "train"):
+        if not isinstance(r.get(part) or {}, dict):
+            raise ValueError(f"{where}.{part} must be a mapping (key: value lines)")
     given = lambda values: {k: v for k, v in (values or {}).items() if v is not None}  # noqa: E731
     return (build(model_cls, {**section(r, "model"), **given(model_overrides)}, f"{where}.model"),
             build(train_cls, {**section(r, "train"), **given(train_overrides)}, f"{where}.train"))

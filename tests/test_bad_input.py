@@ -376,6 +376,10 @@ def sparse(path: Path, size: int) -> Path:
     return path
 
 
+ALIAS_BOMB = b"a: &a [x, x, x, x, x, x, x, x, x]\n" + b"".join(  # 9^8 items when written out
+    b"%c: &%c [%s]\n" % (n, n, b", ".join([b"*%c" % p] * 9)) for p, n in zip(b"abcdefg", b"bcdefgh"))
+
+
 def written(path: Path, content: bytes) -> Path:
     path.write_bytes(content)
     return path
@@ -492,6 +496,19 @@ CASES = [
                                                      written(w / "r.yaml", b"vae:\n  train: {velocity_weight: .inf}\n"),
                                                      "--out", w / "run"], 1,
          "vae.train: velocity_weight must be a finite number >= 0, not inf"),
+    *[Case(f"recipe-{name}", lambda w, p, text=text: ["train-vae", "--data", p / "synth.h5", "--recipe",
+                                                        written(w / "r.yaml", text), "--out", w / "run"], 1, phrase)
+      for name, text, phrase in (
+          ("key-given-twice", b"vae:\n  train: {joint_weight: 0.2, joint_weight: -5}\n",
+           "r.yaml: not a recipe (YAML text) (line 2, column 30: the key 'joint_weight' is given twice)"),
+          ("exponent-read-as-text", b"vae:\n  train: {joint_weight: 2e-1}\n", "write 2.0e-1"),
+          ("key-beside-model-and-train", b"vae:\n  joint_weight: 0.5\n",
+           "r.yaml: vae: unknown key(s) ['joint_weight']"),
+          ("train-not-a-mapping", b"vae: {train: [joint_weight, 0.2]}\n", "r.yaml: vae.train must be a mapping"),
+          ("integer-beyond-a-float", b"vae:\n  train: {joint_weight: " + b"9" * 400 + b"}\n",
+           "joint_weight: 999999999999999999...9999999999999999999 is not a number"),
+          ("alias-bomb", ALIAS_BOMB + b"vae:\n  train: {joint_weight: *h}\n", "joint_weight: [[[...]"),
+      )],
     Case("recipe-joint-weight-with-mld", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe",
                                                        written(w / "r.yaml",
                                                                b"vae:\n  train: {loss: mld, joint_weight: 0.5}\n"),
