@@ -2,7 +2,8 @@
 
 Sections: ``text_encoder`` (a name), ``vae``, ``gan`` and ``diffusion`` (each ``model:`` and ``train:``, read by
 train-vae, train-gan and train-diffusion into VAEConfig/VAETrainConfig, GANConfig/GANTrainConfig and
-DiffusionConfig/DiffusionTrainConfig), ``evaluator``. ``build`` refuses keys a dataclass does not have.
+DiffusionConfig/DiffusionTrainConfig), ``evaluator`` and ``demo``. Every other section, a key beside ``model:`` and
+``train:``, a key a dataclass does not have and a key given twice are refused, so no misspelt name trains on a default.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from lsgan.errors import reading
 T = TypeVar("T")
 U = TypeVar("U")
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+SECTIONS = ("text_encoder", "vae", "gan", "diffusion", "evaluator", "demo")
 
 
 class _Loader(yaml.SafeLoader):
@@ -60,6 +62,9 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
         data = yaml.load(p.read_text(encoding="utf-8"), Loader=_Loader) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{p}: a recipe is a mapping of sections (vae:, gan:, diffusion:, ...)")
+    unknown = sorted(map(str, set(data) - set(SECTIONS)))
+    if unknown:  # a misspelt section would train on the defaults
+        raise ValueError(f"{p}: unknown section(s) {_SHORT.repr(unknown)}; a recipe has {', '.join(SECTIONS)}")
     recipe = Recipe(data)
     recipe.source = str(p)
     return recipe

@@ -376,8 +376,8 @@ def sparse(path: Path, size: int) -> Path:
     return path
 
 
-ALIAS_BOMB = b"a: &a [x, x, x, x, x, x, x, x, x]\n" + b"".join(  # 9^8 items when written out
-    b"%c: &%c [%s]\n" % (n, n, b", ".join([b"*%c" % p] * 9)) for p, n in zip(b"abcdefg", b"bcdefgh"))
+ALIAS_BOMB = b"vae:\n  train:\n    joint_weight:\n      - &a [x, x, x, x, x, x, x, x, x]\n" + b"".join(
+    b"      - &%c [%s]\n" % (n, b", ".join([b"*%c" % p] * 9)) for p, n in zip(b"abcdefg", b"bcdefgh"))  # 9^8 x's
 
 
 def written(path: Path, content: bytes) -> Path:
@@ -507,7 +507,8 @@ CASES = [
           ("train-not-a-mapping", b"vae: {train: [joint_weight, 0.2]}\n", "r.yaml: vae.train must be a mapping"),
           ("integer-beyond-a-float", b"vae:\n  train: {joint_weight: " + b"9" * 400 + b"}\n",
            "joint_weight: 999999999999999999...9999999999999999999 is not a number"),
-          ("alias-bomb", ALIAS_BOMB + b"vae:\n  train: {joint_weight: *h}\n", "joint_weight: [[[...]"),
+          ("misspelt-section", b"vea:\n  train: {max_steps: 3}\n", "r.yaml: unknown section(s) ['vea']"),
+          ("alias-bomb", ALIAS_BOMB, "joint_weight: [['x', 'x', 'x', 'x', ...], [[...], [...], [...], [...], ...], "),
       )],
     Case("recipe-joint-weight-with-mld", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe",
                                                        written(w / "r.yaml",
