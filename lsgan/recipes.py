@@ -30,6 +30,8 @@ class _Loader(yaml.SafeLoader):
 def _mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> dict:
     seen = set()
     for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":  # << merges another mapping; its keys may be overridden
+            continue
         key = loader.construct_object(key_node, deep=True)
         if isinstance(key, (str, int, float, bool)):  # other keys are refused by construct_mapping or the sections
             if key in seen:
@@ -45,9 +47,11 @@ _SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict, _SHORT.maxstring, _SHORT.maxoth
 
 
 class Recipe(dict):
-    """A recipe's sections, and the file they came from (``source``), which every error about them names."""
+    """A recipe's sections (or one section's keys), the file they came from (``source``) and the section's dotted
+    name (``name``), which every error about them names."""
 
     source: str = ""
+    name: str = ""
 
 
 def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
@@ -76,7 +80,7 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - names)
     if unknown:
-        raise ValueError(f"{where or cls.__name__}: unknown key(s) {unknown}; allowed: {sorted(names)}")
+        raise ValueError(f"{where or cls.__name__}: unknown key(s) {_SHORT.repr(unknown)}; allowed: {sorted(names)}")
     for f in dataclasses.fields(cls):
         if f.name in values and not _fits(values[f.name], f.type):
             raise ValueError(f"recipe key {where or cls.__name__}.{f.name}: {_SHORT.repr(values[f.name])} is not "
@@ -106,7 +110,7 @@ def _fits(value: Any, annotation: Any) -> bool:
     A number is one a float holds (a 400-digit integer is not)."""
     kind = str(getattr(annotation, "__name__", annotation))
     number = isinstance(value, (int, float)) and not isinstance(value, bool) and _is_float(value)
-    return {"int": isinstance(value, int) and not isinstance(value, bool), "float": number,
+    return {"int": number and isinstance(value, int), "float": number,
             "bool": isinstance(value, bool), "str": isinstance(value, str)}.get(kind, True)
 
 def _is_float(value: int | float) -> bool:
@@ -117,12 +121,22 @@ def _is_float(value: int | float) -> bool:
     return True
 
 
-def section(recipe: dict[str, Any], name: str) -> dict[str, Any]:
-    value = recipe.get(name) or {}
+def section(recipe: dict[str, Any], name: str, keys: tuple[str, ...] = ()) -> Recipe:
+    """The recipe's section ``name`` ({} when absent or empty), refused unless it is a mapping holding only ``keys``
+    (any key when none are given); errors name the file and the section's dotted name."""
+    source, dotted = getattr(recipe, "source", ""), ".".join(filter(None, (getattr(recipe, "name", ""), name)))
+    where = f"{source}: " if source else ""
+    value = recipe.get(name)
+    if value is None:
+        value = {}
     if not isinstance(value, dict):
-        where = f"{recipe.source}: " if getattr(recipe, "source", "") else ""
-        raise ValueError(f"{where}recipe section {name!r} must be a mapping")
-    return value
+        raise ValueError(f"{where}{dotted} must be a mapping (key: value lines), not {_SHORT.repr(value)}")
+    unknown = sorted(map(str, set(value) - set(keys))) if keys else []
+    if unknown:
+        raise ValueError(f"{where}{dotted}: unknown key(s) {_SHORT.repr(unknown)}; it holds {', '.join(keys)}")
+    out = Recipe(value)
+    out.source, out.name = source, dotted
+    return out
 
 
 def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: type[U],
@@ -131,15 +145,10 @@ def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: ty
     """The recipe's ``kind:`` section as (model config, train config), each override that is not None replacing
     the recipe's value: what every training command builds from a recipe and its options. ``where``: the
     section's name in error messages (default ``kind``)."""
-    r, where = section(recipe, kind), where or kind
-    if getattr(recipe, "source", ""):
-        where = f"{recipe.source}: {where}"
-    unknown = sorted(map(str, set(r) - {"model", "train"}))
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {_SHORT.repr(unknown)}; a section holds model: and train:")
-    for part in ("model", "train"):
-        if not isinstance(r.get(part) or {}, dict):
-            raise ValueError(f"{where}.{part} must be a mapping (key: value lines)")
+    r = section(recipe, kind, ("model", "train"))
+    where = where or r.name
+    if r.source:
+        where = f"{r.source}: {where}"
     given = lambda values: {k: v for k, v in (values or {}).items() if v is not None}  # noqa: E731
     return (build(model_cls, {**section(r, "model"), **given(model_overrides)}, f"{where}.model"),
             build(train_cls, {**section(r, "train"), **given(train_overrides)}, f"{where}.train"))

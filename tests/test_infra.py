@@ -55,6 +55,16 @@ def test_recipes_build_dataclasses_and_refuse_unknown_keys(tmp_path):
         load_recipe(tmp_path / "missing.yaml")
 
 
+def test_recipes_take_yaml_merges_and_refuse_a_key_given_twice(tmp_path):
+    """A ``<<`` merge may be overridden (YAML's rule), but a mapping's own keys may not repeat."""
+    base = "gan:\n  train: &t {lr: 1.0e-3, max_steps: 5}\nvae:\n  train: {<<: *t, max_steps: 7"
+    (tmp_path / "r.yaml").write_text(base + "}\n")
+    assert load_recipe(tmp_path / "r.yaml")["vae"]["train"] == {"lr": 1e-3, "max_steps": 7}
+    (tmp_path / "r.yaml").write_text(base + ", max_steps: 8}\n")
+    with pytest.raises(ValueError, match="the key 'max_steps' is given twice"):
+        load_recipe(tmp_path / "r.yaml")
+
+
 def test_latent_cache_round_trip_and_staleness(tmp_path):
     rng = np.random.default_rng(0)
     mu = rng.normal(size=(10, 8)).astype(np.float32)

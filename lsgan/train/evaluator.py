@@ -428,7 +428,7 @@ def train_from_recipe(data: Sequence[str | os.PathLike], out: str | os.PathLike,
     :func:`train_evaluator` or :func:`train_action_classifier` with ``options`` (device, resume, force, ...)."""
     from lsgan.recipes import configs, section
 
-    sections = section(recipe, "evaluator")
+    sections = section(recipe, "evaluator", ("text", "action"))
     if kind is None:
         present = [k for k in ("text", "action") if k in sections]
         kind = present[0] if len(present) == 1 else "text"
