@@ -573,15 +573,35 @@ def _noted(path: Path) -> Path:
     return path
 
 
+def _me() -> list:
+    return [os.getpid(), _start_time(os.getpid())]
+
+
+def _running(entry: dict, folder: Path, path: Path) -> tuple[list, Path] | None:
+    """Another running lsgan process noted on an entry of ``folder``, and the output it writes there, when that
+    output is ``path``, holds it or lies inside it: the entry itself (``writer``), or an output below it when the
+    process will make the entry as a folder (``makers``: each with the output's path relative to ``folder``)."""
+    notes = [(entry.get("writer"), "")]
+    makers = entry.get("makers") if isinstance(entry.get("makers"), list) else []
+    notes += [(m.get("by"), m.get("output")) for m in makers if isinstance(m, dict) and isinstance(m.get("output"), str)]
+    for writer, output in notes:
+        target = folder / output if output else None
+        if _writer_running(writer) and (target is None or _inside(target, path) or _inside(path, target)):
+            return writer, target
+    return None
+
+
 def check_writer(path: str | os.PathLike) -> None:
-    """Refuse ``path`` when another lsgan process that is still running noted that it writes it, or a folder it
-    will make for it (two commands writing one output would each replace the other's work)."""
-    path = Path(path)
+    """Refuse ``path`` when another lsgan process that is still running noted that it writes it, a folder above
+    it or an output inside it (two commands writing one output would each replace the other's work). Commands
+    that only make the same missing folders for different outputs (``runs/a``, ``runs/b``) may run side by side."""
+    given, path = path, Path(os.path.abspath(path))
     for p in [path, *path.parents]:
-        writer = _read_entries(p.parent).get(p.name, {}).get("writer") if p.parent.is_dir() else None
-        if _writer_running(writer):
-            raise OutputError(f"{path}: another lsgan process (pid {writer[0]}) is writing {p}; wait for it to "
-                              "end or choose another output")
+        note = _running(_read_entries(p.parent).get(p.name, {}), p.parent, path) if p.parent.is_dir() else None
+        if note:
+            writer, target = note
+            raise OutputError(f"{given}: another lsgan process (pid {writer[0]}) is writing {target or p}; wait for "
+                              "it to end or choose another output")
         if p.parent.is_dir() and not (p.parent / REGISTRY).is_file():
             break
 
@@ -606,29 +626,41 @@ def claims() -> Iterator[None]:
 
 
 def reserve(path: str | os.PathLike) -> None:
-    """Note in the registry that this command writes ``path`` (after :func:`check_writer`), during
+    """Note in the registry that this command writes ``path`` (after :func:`check_writer`), or, when its folder
+    is missing, that it makes the highest missing one (``makers``: other commands may make it too), during
     :func:`claims` only."""
-    path = _noted(Path(path))
-    if _claimed is None or not plain_name(path.name) or not path.parent.is_dir():
+    path = Path(os.path.abspath(path))
+    noted = _noted(path)
+    if _claimed is None or not plain_name(noted.name) or not noted.parent.is_dir():
         return
-    with _registry(path.parent) as reg:
-        entry = reg.entries.get(path.name, {})
-        if _writer_running(entry.get("writer")):
+    with _registry(noted.parent) as reg:
+        entry = reg.entries.get(noted.name, {})
+        if _running(entry, noted.parent, path):  # noted by another process since this one's check_writer
             check_writer(path)
-        reg.entries[path.name] = {**entry, "writer": [os.getpid(), _start_time(os.getpid())]}
-    _claimed.append(path)
+        if noted == path:
+            entry = {**entry, "writer": _me()}
+        else:  # the notes of processes that are gone are dropped
+            makers = [m for m in entry.get("makers", []) if isinstance(m, dict) and _writer_running(m.get("by"))] \
+                if isinstance(entry.get("makers"), list) else []
+            entry = {**entry, "makers": [*makers, {"by": _me(), "output": path.relative_to(noted.parent).as_posix()}]}
+        reg.entries[noted.name] = entry
+    _claimed.append(noted)
 
 
 def _release(path: Path) -> None:
-    """Take back this process's note on ``path`` (a registry that is then empty goes too)."""
+    """Take back this process's notes on ``path`` (a registry that is then empty goes too)."""
     if not path.parent.is_dir():
         return
     try:
         with _registry(path.parent) as reg:
             entry = reg.entries.get(path.name)
-            if entry and entry.get("writer") == [os.getpid(), _start_time(os.getpid())]:
-                rest = {k: v for k, v in entry.items() if k != "writer"}
-                reg.entries.pop(path.name) if not rest else reg.entries.update({path.name: rest})
+            if not entry:
+                return
+            rest = {k: v for k, v in entry.items() if not (k == "writer" and v == _me())}
+            if isinstance(rest.get("makers"), list):
+                rest["makers"] = [m for m in rest["makers"] if not (isinstance(m, dict) and m.get("by") == _me())]
+                rest = rest if rest["makers"] else {k: v for k, v in rest.items() if k != "makers"}
+            reg.entries.pop(path.name) if not rest else reg.entries.update({path.name: rest})
     except (OSError, OutputError):
         pass  # a note left behind names a process that is gone: it blocks nothing
 

@@ -8,8 +8,11 @@ DiffusionConfig/DiffusionTrainConfig), ``evaluator`` and ``demo``. Every other s
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import reprlib
+import types
+import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -69,29 +72,67 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
     unknown = sorted(map(str, set(data) - set(SECTIONS)))
     if unknown:  # a misspelt section would train on the defaults
         raise ValueError(f"{p}: unknown section(s) {_SHORT.repr(unknown)}; a recipe has {', '.join(SECTIONS)}")
+    encoder = data.get("text_encoder")
+    if encoder is not None and not isinstance(encoder, str):  # read as a name by train, encode and demo commands
+        raise ValueError(f"{p}: text_encoder is a name (minilm, clip, none), not {_SHORT.repr(encoder)}")
     recipe = Recipe(data)
     recipe.source = str(p)
     return recipe
 
 
 def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
-    """A dataclass from a dict; unknown keys are an error naming the allowed ones."""
+    """A dataclass from a dict; unknown keys, and values that do not fit a field's annotation, are an error naming
+    the section and the key."""
     values = dict(values or {})
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - names)
     if unknown:
         raise ValueError(f"{where or cls.__name__}: unknown key(s) {_SHORT.repr(unknown)}; allowed: {sorted(names)}")
-    for f in dataclasses.fields(cls):
-        if f.name in values and not _fits(values[f.name], f.type):
-            raise ValueError(f"recipe key {where or cls.__name__}.{f.name}: {_SHORT.repr(values[f.name])} is not "
-                             f"{_KINDS.get(str(f.type), f.type)}{_exponent_hint(values[f.name])}")
+    hints = typing.get_type_hints(cls)
+    for name, value in values.items():
+        if not fits(value, hints[name]):
+            raise ValueError(f"recipe key {where or cls.__name__}.{name}: {_SHORT.repr(value)} is not "
+                             f"{kind(hints[name])}{_exponent_hint(value)}")
     try:
         return cls(**values)
     except ValueError as e:  # a dataclass's own check: say which section it is
         raise ValueError(f"{where or cls.__name__}: {e}") from None
 
 
-_KINDS = {"int": "a whole number", "float": "a number", "bool": "true or false", "str": "text"}
+def fits(value: Any, annotation: Any) -> bool:
+    """Whether a recipe value fits a config field's annotation: int, float (a finite number; an int is one too),
+    bool, str, None, a union of these, or a fixed-length tuple of them (a YAML list). Any other annotation raises
+    TypeError, so a config field of a new kind cannot go unchecked (tests build every config's annotations)."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return any(fits(value, a) for a in args)
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+        return isinstance(value, (list, tuple)) and all(fits(v, args[0]) for v in value)
+    if origin is tuple and args and Ellipsis not in args:
+        return isinstance(value, (list, tuple)) and len(value) == len(args) and all(map(fits, value, args))
+    if annotation is type(None):
+        return value is None
+    if annotation is bool or annotation is str:
+        return isinstance(value, annotation)
+    if annotation is int or annotation is float:
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and _finite(value)
+        return number and (annotation is float or isinstance(value, int))
+    raise TypeError(f"a recipe cannot check a value against {annotation!r}")
+
+
+def kind(annotation: Any) -> str:
+    """An annotation in words, for error lines ('a whole number or null')."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(map(kind, args))
+    if origin is tuple and args[-1] is Ellipsis:
+        return f"a list of {kind(args[0]).removeprefix('a ')}"
+    if origin is tuple:
+        return f"a list of {len(args)} ({', '.join(kind(a).removeprefix('a ') for a in args)})"
+    return _KINDS[annotation]
+
+
+_KINDS = {int: "a whole number", float: "a finite number", bool: "true or false", str: "text", type(None): "null"}
 
 
 def _exponent_hint(value: Any) -> str:
@@ -105,20 +146,12 @@ def _exponent_hint(value: Any) -> str:
     return " (YAML reads exponents without a point and a sign as text: write 2.0e-1, 1.0e+3)"
 
 
-def _fits(value: Any, annotation: Any) -> bool:
-    """Whether a recipe value fits its field's plain annotation (int, float, bool, str); others are not checked.
-    A number is one a float holds (a 400-digit integer is not)."""
-    kind = str(getattr(annotation, "__name__", annotation))
-    number = isinstance(value, (int, float)) and not isinstance(value, bool) and _is_float(value)
-    return {"int": number and isinstance(value, int), "float": number,
-            "bool": isinstance(value, bool), "str": isinstance(value, str)}.get(kind, True)
-
-def _is_float(value: int | float) -> bool:
+def _finite(value: int | float) -> bool:
+    """Whether a float holds the number and it is not inf or NaN (a 400-digit integer is refused)."""
     try:
-        float(value)
+        return math.isfinite(float(value))
     except OverflowError:
         return False
-    return True
 
 
 def section(recipe: dict[str, Any], name: str, keys: tuple[str, ...] = ()) -> Recipe:

@@ -495,7 +495,7 @@ CASES = [
     Case("recipe-velocity-weight-inf", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--recipe",
                                                      written(w / "r.yaml", b"vae:\n  train: {velocity_weight: .inf}\n"),
                                                      "--out", w / "run"], 1,
-         "vae.train: velocity_weight must be a finite number >= 0, not inf"),
+         "r.yaml: vae.train.velocity_weight: inf is not a finite number"),
     *[Case(f"recipe-{name}", lambda w, p, text=text: ["train-vae", "--data", p / "synth.h5", "--recipe",
                                                         written(w / "r.yaml", text), "--out", w / "run"], 1, phrase)
       for name, text, phrase in (
@@ -506,10 +506,13 @@ CASES = [
            "r.yaml: vae: unknown key(s) ['joint_weight']"),
           ("train-not-a-mapping", b"vae: {train: [joint_weight, 0.2]}\n", "r.yaml: vae.train must be a mapping"),
           ("integer-beyond-a-float", b"vae:\n  train: {joint_weight: " + b"9" * 400 + b"}\n",
-           "joint_weight: 999999999999999999...9999999999999999999 is not a number"),
+           "joint_weight: 999999999999999999...9999999999999999999 is not a finite number"),
           ("section-not-a-mapping", b"vae: 0\n", "r.yaml: vae must be a mapping (key: value lines), not 0"),
           ("model-false", b"vae: {model: false}\n", "r.yaml: vae.model must be a mapping"),
           ("misspelt-section", b"vea:\n  train: {max_steps: 3}\n", "r.yaml: unknown section(s) ['vea']"),
+          ("lr-infinite", b"vae:\n  train: {lr: .inf}\n", "r.yaml: vae.train.lr: inf is not a finite number"),
+          ("text-encoder-a-mapping", b"text_encoder: {name: minilm}\n",
+           "r.yaml: text_encoder is a name (minilm, clip, none), not {'name': 'minilm'}"),
           ("alias-bomb", ALIAS_BOMB, "joint_weight: [['x', 'x', 'x', 'x', ...], [[...], [...], [...], [...], ...], "),
       )],
     Case("recipe-evaluator-misspelt", lambda w, p: ["train-evaluator", "--data", p / "synth.h5", "--recipe",

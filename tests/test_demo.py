@@ -46,6 +46,23 @@ def test_settings_follow_the_recipe_and_shrink_with_floors(monkeypatch):
             scale_from_env(bad)
 
 
+@pytest.mark.parametrize("text, phrase", [
+    ("demo: {frames: 300}\nvae: {model: {max_len: 256}}", "r.yaml: demo: frames 300 is more than the VAE decodes"),
+    ("demo: {prompts: walk}", "r.yaml: demo.prompts: 'walk' is not a list of text"),
+    ("demo: {prompts: []}", "r.yaml: demo: prompts must be a list of non-empty sentences"),
+    ("demo: {clips: 0}", "r.yaml: demo: clips must be a whole number from 1 to"),
+    ("demo: {seed: -1}", "r.yaml: demo: seed must be from 0"),
+    ("demo: {replications: 2.5}", "r.yaml: demo.replications: 2.5 is not a whole number"),
+    ("demo: {mm_sample: 3}", "r.yaml: demo: unknown key(s) ['mm_sample']"),
+    ("gan: {train: {max_steps: many}}", "r.yaml: gan.train.max_steps must be a whole number >= 1, not 'many'"),
+])
+def test_a_bad_demo_section_is_refused_before_any_stage_runs(tmp_path, text, phrase):
+    (tmp_path / "r.yaml").write_text(text + "\n")
+    with pytest.raises(ValueError) as e:
+        demo_settings(1, tmp_path / "r.yaml")
+    assert phrase in str(e.value)
+
+
 def _demo(out: Path, cwd: Path, **kw) -> subprocess.Popen:
     env = {**os.environ, "LSGAN_DEMO_SCALE": TINY, "OMP_NUM_THREADS": "1"}
     # SIGINT at its default in the child (it is ignored when pytest itself runs in the background)

@@ -78,6 +78,8 @@ def test_text_to_motion_table(run):
         assert row["penetration_m"]["mean"] >= 0 and row["floating_m"]["mean"] >= 0 and row["jerk_m_s3"]["mean"] > 0
     assert real["foot_skating_ratio"]["mean"] < 0.1 and real["penetration_m"]["mean"] < 0.01  # planted synthetic feet
     assert table["info"]["fid_reference"] == "separate"
+    small = [n for n in table["notes"] if n.startswith(f"FID from {table['info']['windows']} motions per draw")]
+    assert len(small) == 1 and "biased upward" in small[0]  # a synthetic test split: fewer windows than dimensions
     markdown = (run / "t2m.md").read_text()
     assert "Skating ↓" in markdown and "Jerk (m/s³) →" in markdown
     assert "| Real |" in markdown and "±" in markdown and "R-P top3" in markdown
@@ -102,6 +104,7 @@ def test_action_table(run):
     assert rows["Real"]["accuracy"]["mean"] > rows["act-gan"]["accuracy"]["mean"] - 1.0  # both defined
     assert rows["Real"]["fid"]["mean"] < 1e-6  # the real draw against itself
     assert rows["act-gan"]["fid"]["mean"] > 0
+    assert not json.loads((run / "act.json").read_text())["notes"]  # 60 motions in the classifier's 30-d features
 
 
 def test_bench_counts_flops_and_times(run):

@@ -5,6 +5,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import torch
 
 from lsgan.eval.metrics import fid
@@ -36,6 +38,17 @@ def test_checkpoint_round_trip_is_exact_and_atomic(tmp_path):
     save_checkpoint(tmp_path / "run" / "last", model=model, kind="toy", config={}, step=8)
     assert weights_hash(tmp_path / "run") == h  # same weights, same hash
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [".lsgan-outputs.json", "last"]
+
+
+def test_a_checkpoint_of_the_same_model_is_the_same_bytes(tmp_path):
+    """Identical runs write identical files (safetensors orders a metadata mapping at random: ours has one key)."""
+    model = torch.nn.Linear(3, 2)
+    digests = set()
+    for i in range(12):
+        folder = save_checkpoint(tmp_path / f"c{i}", model=model, kind="toy", config={"b": 1, "a": 2}, step=3,
+                                 state={"rng": torch.zeros(4, dtype=torch.uint8), "step": 3})
+        digests.add(tuple((folder / name).read_bytes() for name in ("model.safetensors", "config.json", "state.pt")))
+    assert len(digests) == 1
 
 
 def test_recipes_build_dataclasses_and_refuse_unknown_keys(tmp_path):
@@ -146,3 +159,60 @@ def test_the_loop_reads_losses_back_in_windows_and_stops_at_the_first_nan(tmp_pa
     with pytest.raises(TrainingDiverged, match="loss is nan at step 7"):
         fit(env, t, Schedule(max_steps=12, log_every=4, val_every=100, ckpt_every=4))
     assert len(done) == 8 and load_state(out / "last")["step"] == 4
+
+
+def _recipe_dataclasses() -> list[type]:
+    """Every config a recipe section is built into: each ``*Config`` dataclass in lsgan, and the demo section."""
+    import dataclasses
+    import importlib
+    import pkgutil
+
+    import lsgan
+    from lsgan.demo.settings import DemoSection
+
+    found = {DemoSection}
+    for m in pkgutil.walk_packages(lsgan.__path__, "lsgan."):
+        if not m.name.endswith("__main__"):
+            for name, obj in vars(importlib.import_module(m.name)).items():
+                if isinstance(obj, type) and dataclasses.is_dataclass(obj) and name.endswith("Config"):
+                    found.add(obj)
+    return sorted(found, key=lambda c: c.__qualname__)
+
+
+def test_every_recipe_field_is_checked_and_every_default_fits_it():
+    """A recipe value is checked against its field's annotation by one function; a field of a kind it cannot
+    check fails here, not silently in a user's run."""
+    import dataclasses
+    import typing
+
+    from lsgan.recipes import fits, kind
+
+    classes = _recipe_dataclasses()
+    assert {"VAETrainConfig", "GANTrainConfig", "DiffusionTrainConfig", "DemoSection"} <= {c.__name__ for c in classes}
+    for cls in classes:
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            assert fits(default, hints[f.name]), (cls.__name__, f.name)
+            assert kind(hints[f.name])
+
+
+_YAML_VALUES = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                            lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=4), inner,
+                                                                                        max_size=3), max_leaves=6)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_any_recipe_values_build_a_config_or_raise_one_value_error(data):
+    """Whatever a YAML file holds under a section's keys, build() gives the config or a ValueError (one line for
+    the user), never a TypeError deep in training."""
+    import dataclasses
+
+    cls = data.draw(st.sampled_from(_recipe_dataclasses()))
+    names = [f.name for f in dataclasses.fields(cls)]
+    values = data.draw(st.dictionaries(st.sampled_from(names), _YAML_VALUES, max_size=4))
+    try:
+        build(cls, values, "s")
+    except ValueError as e:
+        assert "\n" not in str(e)

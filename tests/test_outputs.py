@@ -241,6 +241,31 @@ def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path, name)
     assert outputs.claim_file(target) == target
 
 
+def test_commands_may_make_the_same_missing_folders_for_different_outputs(tmp_path):
+    """Two trainings into runs/a and runs/b of a runs/ that does not exist yet run side by side; runs/a itself,
+    a folder inside it and runs/ as a whole stay refused while the first runs."""
+    import subprocess
+    import sys
+
+    holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
+                               f"with outputs.claims():\n    outputs.claim_folder({str(tmp_path / 'runs' / 'a')!r})\n"
+                               "    print('held', flush=True)\n    time.sleep(30)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with outputs.claims():
+            assert outputs.claim_folder(tmp_path / "runs" / "b") == tmp_path / "runs" / "b"
+            outputs.make_folder(tmp_path / "runs" / "b")  # made here first: the holder's note must still count
+            for taken in ("runs/a", "runs/a/best", "runs", "runs/b/../a"):
+                with pytest.raises(outputs.OutputError, match=f"pid {holder.pid}. is writing .*runs.a"):
+                    outputs.claim_folder(tmp_path / taken, force=True)
+    finally:
+        holder.kill()
+        holder.wait()
+    notes = json.loads((tmp_path / outputs.REGISTRY).read_text())["entries"]["runs"]
+    assert [m["output"] for m in notes["makers"]] == ["runs/a"]  # this process took its own note back
+
+
 def test_a_new_folder_that_got_a_made_folders_inode_is_the_users(tmp_path):
     """The outside check's B1 (second round): ext4 gives a new folder the inode of one just removed; the random
     id in the made folder's own registry tells them apart."""

@@ -59,6 +59,14 @@ class Table:
     def add(self, row: str, column: str, value: float) -> None:
         self.rows.setdefault(row, {}).setdefault(column, []).append(float(value))
 
+    def note_fid_sample(self, n: int, dim: int) -> None:
+        """Say when an FID comes from no more motions than its embedding has dimensions (a small test split):
+        the covariances are then singular, and the FID is biased upward and noisy."""
+        if n <= dim:
+            self.notes.append(f"FID from {n} motions per draw in a {dim}-d embedding: with no more motions than "
+                              "dimensions the covariances are singular, so the FID is biased upward and noisy; "
+                              "compare it only with FIDs over as many motions.")
+
     def summary(self) -> dict[str, dict[str, tuple[float, float]]]:
         return {r: {c: M.mean_ci(np.asarray(v)) for c, v in cols.items()} for r, cols in self.rows.items()}
 
@@ -239,6 +247,8 @@ def evaluate_text_to_motion(
             reference = second_emb if name == "Real" or fid_reference == "separate" else rows["Real"].emb
             _t2m_cells(table, name, row, text_emb, reference, seed + r, rng)
             _quality_cells(table, name, row.motions)
+    if replications:
+        table.note_fid_sample(len(dataset), second_emb.shape[1])
     return table
 
 
@@ -305,7 +315,10 @@ def evaluate_reconstruction(
         _quality_cells(table, "Real", real)
         _quality_cells(table, "VAE", recon)
         if ev is not None:
-            table.add("VAE", "fid", M.fid(ev.embed_motions(real), ev.embed_motions(recon)))
+            real_emb = ev.embed_motions(real)
+            table.add("VAE", "fid", M.fid(real_emb, ev.embed_motions(recon)))
+            if r == 0:
+                table.note_fid_sample(len(real), real_emb.shape[1])
     return table
 
 
@@ -363,4 +376,6 @@ def evaluate_action_to_motion(
             table.add(name, "accuracy", M.accuracy(pred, labels))
             table.add(name, "diversity", M.action_diversity(feat, pairs=min(200, len(feat) // 2), rng=rng))
             table.add(name, "multimodality", M.action_multimodality(feat, labels, pairs=20, rng=rng))
+    if replications:
+        table.note_fid_sample(min(samples, len(real)), real_feat.shape[1])
     return table

@@ -48,7 +48,10 @@ def save_checkpoint(
     """Write ``folder`` atomically. ``state`` (optional) holds tensors/plain values for resuming."""
     with atomic_folder(folder) as tmp:
         weights = {k: v.detach().contiguous().cpu() for k, v in unwrap(model).state_dict().items()}
-        save_file(weights, tmp / WEIGHTS, metadata={"kind": kind, "lsgan_version": __version__})
+        # one metadata entry: safetensors writes a mapping of several in a random order, so identical runs would
+        # differ byte for byte
+        tag = json.dumps({"kind": kind, "lsgan_version": __version__}, sort_keys=True)
+        save_file(weights, tmp / WEIGHTS, metadata={"lsgan": tag})
         meta = {"kind": kind, "config": config, "step": int(step), "lsgan_version": __version__, "extra": extra or {}}
         (tmp / CONFIG).write_text(json.dumps(meta, indent=1, sort_keys=True))
         if state is not None:

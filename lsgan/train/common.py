@@ -125,10 +125,14 @@ def closing_progress_bars(fn: Callable[..., R]) -> Callable[..., R]:
 
 
 def check_finite(losses: dict[str, float], step: int) -> None:
-    """Stop a run whose loss is NaN/inf, naming the loss and the step."""
+    """Stop a run whose loss is NaN/inf, naming the loss, the step and the step's other values (a term that
+    blew up points at its weight or learning rate)."""
     for name, value in losses.items():
         if not math.isfinite(value):
-            raise TrainingDiverged(f"{name} is {value} at step {step}; stopping (the last good checkpoint is kept)")
+            rest = ", ".join(f"{k} {v:.3g}" for k, v in losses.items() if k != name)
+            raise TrainingDiverged(f"{name} is {value} at step {step} ({rest or 'nothing else logged'}); stopping "
+                                   "(the last good checkpoint is kept; a very large loss weight or learning rate "
+                                   "in the recipe does this)")
 
 
 class RunLog:
