@@ -380,8 +380,11 @@ def _remove_entry(reg: _Registry, path: Path) -> None:
 # ------------------------------------------------------------------------------------------------ temporaries
 
 
+PID_MAX = 2**22  # Linux's highest pid (pid_max at most 4,194,304); a forged registry may hold any number
+
+
 def _alive(pid: object) -> bool:
-    if not isinstance(pid, int) or pid <= 0:
+    if not isinstance(pid, int) or isinstance(pid, bool) or not 0 < pid <= PID_MAX:
         return False
     if pid == os.getpid():
         return True  # this process's own temporaries: removed by the code that made them
@@ -562,7 +565,7 @@ def _writer_running(writer: object) -> bool:
     if not (isinstance(writer, list) and len(writer) == 2 and isinstance(writer[0], int)):
         return False
     pid, start = writer
-    return pid != os.getpid() and _alive(pid) and _start_time(pid) == start
+    return pid != os.getpid() and _alive(pid) and isinstance(start, str) and start != "" and _start_time(pid) == start
 
 
 def _noted(path: Path) -> Path:
@@ -595,7 +598,7 @@ def check_writer(path: str | os.PathLike) -> None:
     """Refuse ``path`` when another lsgan process that is still running noted that it writes it, a folder above
     it or an output inside it (two commands writing one output would each replace the other's work). Commands
     that only make the same missing folders for different outputs (``runs/a``, ``runs/b``) may run side by side."""
-    given, path = path, Path(os.path.abspath(path))
+    given, path = path, Path(os.path.realpath(path))  # a linked folder names the same outputs as its target
     for p in [path, *path.parents]:
         note = _running(_read_entries(p.parent).get(p.name, {}), p.parent, path) if p.parent.is_dir() else None
         if note:
@@ -629,7 +632,7 @@ def reserve(path: str | os.PathLike) -> None:
     """Note in the registry that this command writes ``path`` (after :func:`check_writer`), or, when its folder
     is missing, that it makes the highest missing one (``makers``: other commands may make it too), during
     :func:`claims` only."""
-    path = Path(os.path.abspath(path))
+    path = Path(os.path.realpath(path))
     noted = _noted(path)
     if _claimed is None or not plain_name(noted.name) or not noted.parent.is_dir():
         return

@@ -73,19 +73,79 @@ def load_recipe(path: str | os.PathLike) -> dict[str, Any]:
     if unknown:  # a misspelt section would train on the defaults
         raise ValueError(f"{p}: unknown section(s) {_SHORT.repr(unknown)}; a recipe has {', '.join(SECTIONS)}")
     encoder = data.get("text_encoder")
-    if encoder is not None and not isinstance(encoder, str):  # read as a name by train, encode and demo commands
-        raise ValueError(f"{p}: text_encoder is a name (minilm, clip, none), not {_SHORT.repr(encoder)}")
+    if encoder is not None:  # read as a name by train, encode and demo commands
+        from lsgan.models.text import available_encoders
+
+        names = (*available_encoders(), "none")
+        if encoder not in names:
+            raise ValueError(f"{p}: text_encoder is one of {', '.join(names)}, not {_SHORT.repr(encoder)}")
     recipe = Recipe(data)
     recipe.source = str(p)
     return recipe
 
 
+class Bounds(typing.NamedTuple):
+    """The values a numeric setting may take: ``low`` (excluded when ``open_low``) to ``high``."""
+
+    low: float
+    high: float
+    open_low: bool = False
+
+    def holds(self, value: float) -> bool:
+        return (self.low < value if self.open_low else self.low <= value) and value <= self.high
+
+    def __str__(self) -> str:
+        def number(v: float) -> str:
+            return f"{int(v):,}" if v == int(v) and abs(v) < 1e16 else f"{v:g}"
+
+        return f"{'above' if self.open_low else 'from'} {number(self.low)} to {number(self.high)}"
+
+
+_STEPS, _WIDTH, _FRAMES, _WEIGHT = Bounds(1, 1e9), Bounds(1, 65536), Bounds(1, 100_000), Bounds(0, 1e6)
+BOUNDS: dict[str, Bounds] = {
+    # how many: steps, intervals, draws, batches
+    **dict.fromkeys(("max_steps", "val_every", "ckpt_every", "log_every", "eval_every", "eval_repeats", "eval_steps",
+                     "sample_steps", "train_timesteps", "critic_steps", "fid_samples", "group_size", "batch_size",
+                     "clips", "replications", "mm_captions", "mm_samples"), _STEPS),
+    **dict.fromkeys(("warmup_steps", "val_batches"), Bounds(0, 1e9)),
+    # sizes of the networks
+    **dict.fromkeys(("latent_dim", "d_model", "ff_size", "hidden_dim", "hidden_size", "noise_dim", "action_emb_dim",
+                     "movement_hidden", "movement_latent", "motion_hidden", "embed_dim", "text_hidden", "feature_dim",
+                     "nfeats"), _WIDTH),
+    **dict.fromkeys(("cond_dim", "num_actions", "num_classes"), Bounds(0, 65536)),
+    **dict.fromkeys(("num_layers", "num_heads", "num_joints"), Bounds(1, 1024)),
+    "num_res_blocks": Bounds(0, 1024),
+    "smooth_output": Bounds(0, 8),
+    # lengths in frames
+    **dict.fromkeys(("min_frames", "max_frames", "max_len", "max_motion_length", "frames"), _FRAMES),
+    "unit_length": Bounds(1, 1000),
+    # the rest
+    "seed": Bounds(0, 2**63 - 1),
+    "num_workers": Bounds(0, 256),
+    "lr": Bounds(0, 10, open_low=True),
+    **dict.fromkeys(("weight_decay", "grad_clip", "margin", "gp_weight", "kl_weight", "joint_weight",
+                     "velocity_weight", "accel_weight", "bone_weight", "contact_weight"), _WEIGHT),
+    **dict.fromkeys(("dropout", "cond_mask_prob", "leaky_slope", "eta"), Bounds(0, 1)),
+    **dict.fromkeys(("beta_start", "beta_end"), Bounds(0, 1, open_low=True)),
+    "betas": Bounds(0, 0.999999),
+    **dict.fromkeys(("guidance_scale", "eval_guidance"), Bounds(0, 1000)),
+}
+"""Every numeric setting of a recipe, by name (the same name means the same thing in every section); a test fails
+when a config gains a numeric field that is not here, so no setting reaches training unchecked."""
+
+
+def numbers(value: Any) -> list[float]:
+    """The numbers in a recipe value (a number, a list of them, or none)."""
+    items = value if isinstance(value, (list, tuple)) else [value]
+    return [v for v in items if isinstance(v, (int, float)) and not isinstance(v, bool)]
+
+
 def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
-    """A dataclass from a dict; unknown keys, and values that do not fit a field's annotation, are an error naming
-    the section and the key."""
+    """A dataclass from a dict; unknown keys, values that do not fit a field's annotation and numbers outside the
+    setting's :data:`BOUNDS` are an error naming the section and the key."""
     values = dict(values or {})
     names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
+    unknown = sorted(map(str, set(values) - names))
     if unknown:
         raise ValueError(f"{where or cls.__name__}: unknown key(s) {_SHORT.repr(unknown)}; allowed: {sorted(names)}")
     hints = typing.get_type_hints(cls)
@@ -93,6 +153,10 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
         if not fits(value, hints[name]):
             raise ValueError(f"recipe key {where or cls.__name__}.{name}: {_SHORT.repr(value)} is not "
                              f"{kind(hints[name])}{_exponent_hint(value)}")
+        bounds = BOUNDS.get(name)
+        if bounds is not None and not all(map(bounds.holds, numbers(value))):
+            raise ValueError(f"recipe key {where or cls.__name__}.{name}: {_SHORT.repr(value)} is not "
+                             f"{'each ' if isinstance(value, (list, tuple)) else ''}{bounds}")
     try:
         return cls(**values)
     except ValueError as e:  # a dataclass's own check: say which section it is

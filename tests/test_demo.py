@@ -41,7 +41,7 @@ def test_settings_follow_the_recipe_and_shrink_with_floors(monkeypatch):
     assert "1 replication (the protocol: 20)" in tiny.reduced
     assert demo_settings(0.5).scale == 0.5  # an explicit scale wins over the variable
 
-    for bad in ("x", "0", "-1", "nan"):
+    for bad in ("x", "0", "-1", "nan", "1e308", "101"):
         with pytest.raises(ValueError, match="number > 0"):
             scale_from_env(bad)
 
@@ -50,11 +50,14 @@ def test_settings_follow_the_recipe_and_shrink_with_floors(monkeypatch):
     ("demo: {frames: 300}\nvae: {model: {max_len: 256}}", "r.yaml: demo: frames 300 is more than the VAE decodes"),
     ("demo: {prompts: walk}", "r.yaml: demo.prompts: 'walk' is not a list of text"),
     ("demo: {prompts: []}", "r.yaml: demo: prompts must be a list of non-empty sentences"),
-    ("demo: {clips: 0}", "r.yaml: demo: clips must be a whole number from 1 to"),
-    ("demo: {seed: -1}", "r.yaml: demo: seed must be from 0"),
+    ("demo: {clips: 0}", "r.yaml: demo.clips: 0 is not from 1 to 1,000,000,000"),
+    ("demo: {seed: -1}", "r.yaml: demo.seed: -1 is not from 0 to 9.22337e+18"),
+    ("demo: {1: 2, zz: 3}", "r.yaml: demo: unknown key(s) ['1', 'zz']"),
+    ("vae: {model: {num_heads: 0}}", "r.yaml: vae.model.num_heads: 0 is not from 1 to 1,024"),
+    ("evaluator: {text: {train: {val_every: 0}}}", "r.yaml: evaluator.text.train.val_every: 0 is not from 1"),
     ("demo: {replications: 2.5}", "r.yaml: demo.replications: 2.5 is not a whole number"),
     ("demo: {mm_sample: 3}", "r.yaml: demo: unknown key(s) ['mm_sample']"),
-    ("gan: {train: {max_steps: many}}", "r.yaml: gan.train.max_steps must be a whole number >= 1, not 'many'"),
+    ("gan: {train: {max_steps: many}}", "r.yaml: gan.train.max_steps: 'many' is not a whole number"),
 ])
 def test_a_bad_demo_section_is_refused_before_any_stage_runs(tmp_path, text, phrase):
     (tmp_path / "r.yaml").write_text(text + "\n")

@@ -180,12 +180,13 @@ def _recipe_dataclasses() -> list[type]:
 
 
 def test_every_recipe_field_is_checked_and_every_default_fits_it():
-    """A recipe value is checked against its field's annotation by one function; a field of a kind it cannot
-    check fails here, not silently in a user's run."""
+    """A recipe value is checked against its field's annotation by one function, and every number against its
+    setting's bounds; a field of a kind it cannot check, or a number without bounds, fails here, not silently in a
+    user's run."""
     import dataclasses
     import typing
 
-    from lsgan.recipes import fits, kind
+    from lsgan.recipes import BOUNDS, fits, kind, numbers
 
     classes = _recipe_dataclasses()
     assert {"VAETrainConfig", "GANTrainConfig", "DiffusionTrainConfig", "DemoSection"} <= {c.__name__ for c in classes}
@@ -195,6 +196,9 @@ def test_every_recipe_field_is_checked_and_every_default_fits_it():
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
             assert fits(default, hints[f.name]), (cls.__name__, f.name)
             assert kind(hints[f.name])
+            if "int" in str(hints[f.name]) or "float" in str(hints[f.name]):
+                assert f.name in BOUNDS, f"{cls.__name__}.{f.name} has no bounds in lsgan.recipes.BOUNDS"
+                assert all(map(BOUNDS[f.name].holds, numbers(default))), (cls.__name__, f.name, default)
 
 
 _YAML_VALUES = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),

@@ -266,6 +266,33 @@ def test_commands_may_make_the_same_missing_folders_for_different_outputs(tmp_pa
     assert [m["output"] for m in notes["makers"]] == ["runs/a"]  # this process took its own note back
 
 
+def test_a_linked_parent_names_the_same_output_and_forged_notes_block_nothing(tmp_path):
+    """A command writing runs/a is refused through a link to runs (the hostile review's A7); notes a registry was
+    forged with (a pid beyond any, a negative one, an empty start time) are no one's."""
+    import subprocess
+    import sys
+
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "runs")
+    holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
+                               f"with outputs.claims():\n    outputs.claim_folder({str(tmp_path / 'runs' / 'a')!r})\n"
+                               "    print('held', flush=True)\n    time.sleep(30)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(outputs.OutputError, match="another lsgan process"):
+            outputs.claim_folder(tmp_path / "link" / "a", force=True)
+    finally:
+        holder.kill()
+        holder.wait()
+    forged = {"q": {"writer": [10**20, "0"], "makers": [{"by": [-1, ""], "output": "q/r"}, {"by": [1, ""],
+                                                                                          "output": "q"}, 7]}}
+    (tmp_path / outputs.REGISTRY).write_text(json.dumps({"entries": forged}))
+    with outputs.claims():
+        assert outputs.claim_folder(tmp_path / "q" / "r") == tmp_path / "q" / "r"
+        assert outputs.claim_folder(tmp_path / "q", force=True) == tmp_path / "q"
+
+
 def test_a_new_folder_that_got_a_made_folders_inode_is_the_users(tmp_path):
     """The outside check's B1 (second round): ext4 gives a new folder the inode of one just removed; the random
     id in the made folder's own registry tells them apart."""

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 SCALE_ENV = "LSGAN_DEMO_SCALE"
+MAX_SCALE = 100
 MIN_CLIPS = 400  # the hash split gives 42 test windows: R-precision needs groups of 32
 
 
@@ -23,18 +24,9 @@ class DemoSection:
     prompts: tuple[str, ...] = ("a person walks forward", "a person runs forward", "a person waves their right hand",
                                 "a person jumps up", "a person does a squat")
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name == "seed" and not 0 <= value < 2**63:
-                raise ValueError(f"seed must be from 0 to 2**63 - 1, not {value}")
-            if f.name not in ("seed", "prompts") and not 1 <= value <= LIMITS[f.name]:
-                raise ValueError(f"{f.name} must be a whole number from 1 to {LIMITS[f.name]}, not {value}")
+    def __post_init__(self) -> None:  # numbers: lsgan.recipes.BOUNDS
         if not self.prompts or any(not p.strip() for p in self.prompts):
             raise ValueError("prompts must be a list of non-empty sentences")
-
-
-LIMITS = {"clips": 1_000_000, "frames": 10_000, "replications": 1_000, "mm_captions": 10_000, "mm_samples": 1_000}
 
 
 def scale_from_env(value: str | None = None) -> float:
@@ -46,8 +38,8 @@ def scale_from_env(value: str | None = None) -> float:
         scale = float(raw)
     except ValueError:
         raise ValueError(f"{SCALE_ENV} must be a number > 0 (e.g. 0.05), not {raw!r}") from None
-    if not (math.isfinite(scale) and scale > 0):
-        raise ValueError(f"the demo scale must be a number > 0 (e.g. 0.05), not {raw!r}")
+    if not (math.isfinite(scale) and 0 < scale <= MAX_SCALE):
+        raise ValueError(f"the demo scale must be a number > 0 and at most {MAX_SCALE} (e.g. 0.05), not {raw!r}")
     return scale
 
 
@@ -79,31 +71,35 @@ def _scaled(n: int, scale: float, floor: int) -> int:
     return max(floor, int(round(n * scale)))
 
 
-def _steps(recipe: dict, names: tuple[str, ...], default: int) -> int:
-    """``max_steps`` of the recipe's section ``names`` (default when absent), refused unless a whole number >= 1."""
-    from lsgan.recipes import fits, section
+def _trained(recipe: dict) -> tuple[int, dict[str, int]]:
+    """Every config the demo trains, built from the recipe now so that a bad value is refused before any stage
+    runs: the VAE's longest motion and each training's ``max_steps``."""
+    from lsgan.models.evaluator import EvaluatorConfig
+    from lsgan.models.gan import GANConfig
+    from lsgan.models.vae import VAEConfig
+    from lsgan.recipes import configs, section
+    from lsgan.train.evaluator import EvaluatorTrainConfig
+    from lsgan.train.gan import GANTrainConfig
+    from lsgan.train.vae import VAETrainConfig
 
-    for name in names:
-        recipe = section(recipe, name)
-    steps = recipe.get("max_steps", default)
-    if not (fits(steps, int) and steps >= 1):
-        raise ValueError(f"{recipe.source}: {recipe.name}.max_steps must be a whole number >= 1, not {steps!r}")
-    return steps
+    vae, vae_train = configs(recipe, "vae", VAEConfig, VAETrainConfig)
+    gan_train = configs(recipe, "gan", GANConfig, GANTrainConfig)[1]
+    evaluator_train = configs(section(recipe, "evaluator"), "text", EvaluatorConfig, EvaluatorTrainConfig)[1]
+    return vae.max_len, {"vae": vae_train.max_steps, "gan": gan_train.max_steps,
+                         "evaluator": evaluator_train.max_steps}
 
 
 def demo_settings(scale: float | None = None, recipe: str | os.PathLike = "demo") -> DemoSettings:
     """The settings at ``scale`` from the recipe (its vae/gan/evaluator step counts and its ``demo:`` section)."""
-    from lsgan.recipes import build, fits, load_recipe, section
+    from lsgan.recipes import build, load_recipe, section
 
     scale = scale_from_env() if scale is None else scale_from_env(str(scale))
     r = load_recipe(recipe)
     d = build(DemoSection, section(r, "demo"), f"{r.source}: demo")
-    longest = section(section(r, "vae"), "model").get("max_len", 1024)  # VAEConfig's default
-    if fits(longest, int) and d.frames > longest:
+    longest, steps = _trained(r)
+    if d.frames > longest:
         raise ValueError(f"{r.source}: demo: frames {d.frames} is more than the VAE decodes (vae.model.max_len "
                          f"{longest})")
-    steps = {"vae": _steps(r, ("vae", "train"), 300), "gan": _steps(r, ("gan", "train"), 1500),
-             "evaluator": _steps(r, ("evaluator", "text", "train"), 200)}
     return DemoSettings(
         scale=scale, clips=_scaled(d.clips, scale, min(MIN_CLIPS, d.clips)), seed=d.seed,
         vae_steps=_scaled(steps["vae"], scale, 10), gan_steps=_scaled(steps["gan"], scale, 20),
