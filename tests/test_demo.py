@@ -49,7 +49,9 @@ def test_settings_follow_the_recipe_and_shrink_with_floors(monkeypatch):
 @pytest.mark.parametrize("text, phrase", [
     ("demo: {frames: 300}\nvae: {model: {max_len: 256}}", "r.yaml: demo: frames 300 is more than the VAE decodes"),
     ("demo: {prompts: walk}", "r.yaml: demo.prompts: 'walk' is not a list of text"),
-    ("demo: {prompts: []}", "r.yaml: demo: prompts must be a list of non-empty sentences"),
+    ("demo: {prompts: []}", "r.yaml: demo: prompts must be a list of 1 to 100 sentences"),
+    ("demo: {prompts: [\"walk\\0\"]}", "r.yaml: demo: prompts must be a list of 1 to 100 sentences of printable"),
+    ("vae: {train: {min_frames: 100, max_frames: 40}}", "r.yaml: vae.train: min_frames (100) is more than max_frames"),
     ("demo: {clips: 0}", "r.yaml: demo.clips: 0 is not from 1 to 1,000,000,000"),
     ("demo: {seed: -1}", "r.yaml: demo.seed: -1 is not from 0 to 9.22337e+18"),
     ("demo: {1: 2, zz: 3}", "r.yaml: demo: unknown key(s) ['1', 'zz']"),

@@ -25,8 +25,10 @@ class DemoSection:
                                 "a person jumps up", "a person does a squat")
 
     def __post_init__(self) -> None:  # numbers: lsgan.recipes.BOUNDS
-        if not self.prompts or any(not p.strip() for p in self.prompts):
-            raise ValueError("prompts must be a list of non-empty sentences")
+        if not 1 <= len(self.prompts) <= 100 or any(not p.strip() or len(p) > 500 or not p.isprintable()
+                                                    for p in self.prompts):
+            raise ValueError("prompts must be a list of 1 to 100 sentences of printable text, each at most 500 "
+                             "characters")
 
 
 def scale_from_env(value: str | None = None) -> float:

@@ -131,8 +131,8 @@ def check_finite(losses: dict[str, float], step: int) -> None:
         if not math.isfinite(value):
             rest = ", ".join(f"{k} {v:.3g}" for k, v in losses.items() if k != name)
             raise TrainingDiverged(f"{name} is {value} at step {step} ({rest or 'nothing else logged'}); stopping "
-                                   "(the last good checkpoint is kept; a very large loss weight or learning rate "
-                                   "in the recipe does this)")
+                                   "(the last good checkpoint, if one was written, is kept; a very large loss weight or "
+                                   "learning rate in the recipe does this)")
 
 
 class RunLog:

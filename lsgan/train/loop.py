@@ -250,6 +250,10 @@ class WindowTrainConfig:
     num_workers: int = 0  # loader processes where a trainer reads through a DataLoader (windows of shards are gathered)
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        if self.min_frames > self.max_frames:
+            raise ValueError(f"min_frames ({self.min_frames}) is more than max_frames ({self.max_frames})")
+
     def schedule(self) -> Schedule:
         return Schedule(self.max_steps, self.log_every, self.val_every, self.ckpt_every)
 

@@ -66,6 +66,7 @@ class VAETrainConfig(WindowTrainConfig):
     val_batches: int = 16  # validation batches at most; 0 = the whole validation set
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {', '.join(LOSSES)}, not {self.loss!r}")
         if self.kinematic_loss not in KINEMATIC:
