@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 import click
@@ -217,26 +218,34 @@ def test_a_users_file_under_the_registrys_name_is_kept(tmp_path):
         outputs.claim_file(tmp_path / outputs.REGISTRY)
 
 
-@pytest.mark.parametrize("name", ["s.h5", "new/deep/s.h5"])
-def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path, name):
-    """B5: two commands writing one output would each replace the other's: the second is refused while the
-    first runs, and free once it is gone."""
+@contextmanager
+def _held(claim: str, path: Path):
+    """Another process that claims ``path`` (``outputs.claim_file`` or ``claim_folder``) and holds it while the
+    block runs; yields that process."""
     import subprocess
     import sys
-    import time
 
-    target = tmp_path / name  # B5: also below folders that do not exist yet
     holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
-                               f"with outputs.claims():\n    outputs.claim_file({str(target)!r})\n"
+                               f"with outputs.claims():\n    outputs.{claim}({str(path)!r})\n"
                                "    print('held', flush=True)\n    time.sleep(30)"],
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(outputs.OutputError, match="another lsgan process"):
-            outputs.claim_file(target)
+        yield holder
     finally:
         holder.kill()
         holder.wait()
+
+
+@pytest.mark.parametrize("name", ["s.h5", "new/deep/s.h5"])
+def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path, name):
+    """B5: two commands writing one output would each replace the other's: the second is refused while the
+    first runs, and free once it is gone."""
+    import time
+
+    target = tmp_path / name  # B5: also below folders that do not exist yet
+    with _held("claim_file", target), pytest.raises(outputs.OutputError, match="another lsgan process"):
+        outputs.claim_file(target)
     time.sleep(0.05)
     assert outputs.claim_file(target) == target
 
@@ -244,24 +253,12 @@ def test_a_second_process_cannot_claim_what_a_running_one_writes(tmp_path, name)
 def test_commands_may_make_the_same_missing_folders_for_different_outputs(tmp_path):
     """Two trainings into runs/a and runs/b of a runs/ that does not exist yet run side by side; runs/a itself,
     a folder inside it and runs/ as a whole stay refused while the first runs."""
-    import subprocess
-    import sys
-
-    holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
-                               f"with outputs.claims():\n    outputs.claim_folder({str(tmp_path / 'runs' / 'a')!r})\n"
-                               "    print('held', flush=True)\n    time.sleep(30)"],
-                              stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "held"
-        with outputs.claims():
-            assert outputs.claim_folder(tmp_path / "runs" / "b") == tmp_path / "runs" / "b"
-            outputs.make_folder(tmp_path / "runs" / "b")  # made here first: the holder's note must still count
-            for taken in ("runs/a", "runs/a/best", "runs", "runs/b/../a"):
-                with pytest.raises(outputs.OutputError, match=f"pid {holder.pid}. is writing .*runs.a"):
-                    outputs.claim_folder(tmp_path / taken, force=True)
-    finally:
-        holder.kill()
-        holder.wait()
+    with _held("claim_folder", tmp_path / "runs" / "a") as holder, outputs.claims():
+        assert outputs.claim_folder(tmp_path / "runs" / "b") == tmp_path / "runs" / "b"
+        outputs.make_folder(tmp_path / "runs" / "b")  # made here first: the holder's note must still count
+        for taken in ("runs/a", "runs/a/best", "runs", "runs/b/../a"):
+            with pytest.raises(outputs.OutputError, match=f"pid {holder.pid}. is writing .*runs.a"):
+                outputs.claim_folder(tmp_path / taken, force=True)
     notes = json.loads((tmp_path / outputs.REGISTRY).read_text())["entries"]["runs"]
     assert [m["output"] for m in notes["makers"]] == ["runs/a"]  # this process took its own note back
 
@@ -269,22 +266,10 @@ def test_commands_may_make_the_same_missing_folders_for_different_outputs(tmp_pa
 def test_a_linked_parent_names_the_same_output_and_forged_notes_block_nothing(tmp_path):
     """A command writing runs/a is refused through a link to runs (the hostile review's A7); notes a registry was
     forged with (a pid beyond any, a negative one, an empty start time) are no one's."""
-    import subprocess
-    import sys
-
     (tmp_path / "runs").mkdir()
     (tmp_path / "link").symlink_to(tmp_path / "runs")
-    holder = subprocess.Popen([sys.executable, "-c", "import time; from lsgan import outputs\n"
-                               f"with outputs.claims():\n    outputs.claim_folder({str(tmp_path / 'runs' / 'a')!r})\n"
-                               "    print('held', flush=True)\n    time.sleep(30)"],
-                              stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(outputs.OutputError, match="another lsgan process"):
-            outputs.claim_folder(tmp_path / "link" / "a", force=True)
-    finally:
-        holder.kill()
-        holder.wait()
+    with _held("claim_folder", tmp_path / "runs" / "a"), pytest.raises(outputs.OutputError, match="another lsgan"):
+        outputs.claim_folder(tmp_path / "link" / "a", force=True)
     forged = {"q": {"writer": [10**20, "0"], "makers": [{"by": [-1, ""], "output": "q/r"}, {"by": [1, ""],
                                                                                           "output": "q"}, 7]}}
     (tmp_path / outputs.REGISTRY).write_text(json.dumps({"entries": forged}))
