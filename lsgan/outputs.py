@@ -172,7 +172,7 @@ def _registry_data(folder: Path) -> dict:
         return {}
     try:
         data = json.loads((folder / REGISTRY).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # a forged file nested beyond the decoder's depth too
         return {}
     return data if isinstance(data, dict) else {}
 
@@ -195,7 +195,7 @@ def _is_registry_file(path: Path, partial: bool = False) -> bool:
         if partial and (text == "" or text.startswith('{\n"entries"')):
             return True
         data = json.loads(text)
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
     return isinstance(data, dict) and isinstance(data.get("entries"), dict)
 

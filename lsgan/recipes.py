@@ -105,15 +105,18 @@ _STEPS, _WIDTH, _FRAMES, _WEIGHT = Bounds(1, 1e9), Bounds(1, 65536), Bounds(1, 1
 BOUNDS: dict[str, Bounds] = {
     # how many: steps, intervals, draws, batches
     **dict.fromkeys(("max_steps", "val_every", "ckpt_every", "log_every", "eval_every", "eval_repeats", "eval_steps",
-                     "sample_steps", "train_timesteps", "critic_steps", "fid_samples", "group_size", "batch_size",
+                     "sample_steps", "train_timesteps", "critic_steps", "group_size", "batch_size",
                      "clips", "replications", "mm_captions", "mm_samples"), _STEPS),
     **dict.fromkeys(("warmup_steps", "val_batches"), Bounds(0, 1e9)),
+    "fid_samples": Bounds(2, 1e9),  # a covariance needs two
     # sizes of the networks
     **dict.fromkeys(("latent_dim", "d_model", "ff_size", "hidden_dim", "hidden_size", "noise_dim", "action_emb_dim",
-                     "movement_hidden", "movement_latent", "motion_hidden", "embed_dim", "text_hidden", "feature_dim",
-                     "nfeats"), _WIDTH),
+                     "movement_hidden", "movement_latent", "motion_hidden", "embed_dim", "text_hidden", "feature_dim"),
+                    _WIDTH),
+    "nfeats": Bounds(263, 263),  # the HumanML3D features every shard holds
+    "num_joints": Bounds(22, 22),  # their skeleton's joints
     **dict.fromkeys(("cond_dim", "num_actions", "num_classes"), Bounds(0, 65536)),
-    **dict.fromkeys(("num_layers", "num_heads", "num_joints"), Bounds(1, 1024)),
+    **dict.fromkeys(("num_layers", "num_heads"), Bounds(1, 1024)),
     "num_res_blocks": Bounds(0, 1024),
     "smooth_output": Bounds(0, 8),
     # lengths in frames

@@ -21,7 +21,7 @@ from test_vae import _walk
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-TINY = VAEConfig(d_model=32, num_layers=1, num_heads=4, ff_size=64, latent_dim=32, dropout=0.0, max_len=128,
+TINY = VAEConfig(d_model=32, num_layers=1, num_heads=4, ff_size=64, latent_dim=32, dropout=0.0, max_len=196,
                  smooth_output=1, rigid_output=True)
 LENGTHS = torch.tensor(np.linalg.norm(TARGET_OFFSETS[1:], axis=-1), dtype=torch.float64)
 

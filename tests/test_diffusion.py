@@ -4,6 +4,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import subprocess
 import sys
 from dataclasses import asdict
@@ -472,3 +473,17 @@ def test_torchrun_two_processes(tmp_path: Path) -> None:
     assert read_meta(out, "last")["step"] == 6 and (out / "best").is_dir() and (out / "log.csv").exists()
     digests = [(out / f"digest{r}.txt").read_text() for r in range(2)]
     assert digests[0] == digests[1], digests  # DDP keeps the ranks' weights identical (they draw different batches)
+
+
+@pytest.mark.parametrize("values, phrase", [
+    ({"beta_start": 1.0, "beta_end": 1.0}, "beta_start (1.0) must be below beta_end (1.0)"),
+    ({"beta_start": 0.5, "beta_end": 0.001}, "beta_start (0.5) must be below beta_end (0.001)"),
+    ({"sample_steps": 5000, "train_timesteps": 10}, "sample_steps (5000) is more than train_timesteps (10)"),
+])
+def test_a_schedule_that_cannot_run_is_refused_with_its_section(values, phrase):
+    """Settings within their bounds that no schedule can run (the second hostile review) are refused when the
+    recipe is read, naming the section, not by scipy or at generation."""
+    from lsgan.recipes import build
+
+    with pytest.raises(ValueError, match=re.escape(f"r.yaml: diffusion.model: {phrase}")):
+        build(DiffusionConfig, values, "r.yaml: diffusion.model")

@@ -155,9 +155,11 @@ Examples:
 @click.option("--text-encoder", help="minilm (default), clip-vit-l-14, or none (default: the recipe's, else minilm).")
 @click.option("--recipe", type=MaybeIn(), help="Recipe whose text_encoder: key picks the encoder.")
 @click.option("--text-encoder-path", type=In(exists=True), help="Local folder of the text encoder's weights.")
-@click.option("--min-frames", default=None, type=int, help="Shortest window (default: the VAE's training setting).")
-@click.option("--max-frames", default=None, type=int, help="Longest window (default: the VAE's training setting).")
-@click.option("--batch-size", default=64, show_default=True)
+@click.option("--min-frames", default=None, type=click.IntRange(min=1),
+              help="Shortest window (default: the VAE's training setting).")
+@click.option("--max-frames", default=None, type=click.IntRange(min=1),
+              help="Longest window (default: the VAE's training setting).")
+@click.option("--batch-size", default=64, show_default=True, type=click.IntRange(min=1))
 @click.option("--device", default="auto", show_default=True)
 @click.option("--force", is_flag=True, help="Replace an existing OUTPUT that lsgan wrote (never another file).")
 def encode_latents_cmd(data, vae, output, text_encoder, recipe, text_encoder_path, min_frames, max_frames, batch_size,

@@ -25,6 +25,9 @@ class DemoSection:
                                 "a person jumps up", "a person does a squat")
 
     def __post_init__(self) -> None:  # numbers: lsgan.recipes.BOUNDS
+        if self.clips < MIN_CLIPS:
+            raise ValueError(f"clips must be at least {MIN_CLIPS} (the test split must hold 32 windows for "
+                             f"R-precision), not {self.clips}")
         if not 1 <= len(self.prompts) <= 100 or any(not p.strip() or len(p) > 500 or not p.isprintable()
                                                     for p in self.prompts):
             raise ValueError("prompts must be a list of 1 to 100 sentences of printable text, each at most 500 "
@@ -98,12 +101,14 @@ def demo_settings(scale: float | None = None, recipe: str | os.PathLike = "demo"
     scale = scale_from_env() if scale is None else scale_from_env(str(scale))
     r = load_recipe(recipe)
     d = build(DemoSection, section(r, "demo"), f"{r.source}: demo")
+    if r.get("text_encoder") == "none":
+        raise ValueError(f"{r.source}: text_encoder is none, but the demo trains a text-to-motion GAN")
     longest, steps = _trained(r)
     if d.frames > longest:
         raise ValueError(f"{r.source}: demo: frames {d.frames} is more than the VAE decodes (vae.model.max_len "
                          f"{longest})")
     return DemoSettings(
-        scale=scale, clips=_scaled(d.clips, scale, min(MIN_CLIPS, d.clips)), seed=d.seed,
+        scale=scale, clips=_scaled(d.clips, scale, MIN_CLIPS), seed=d.seed,
         vae_steps=_scaled(steps["vae"], scale, 10), gan_steps=_scaled(steps["gan"], scale, 20),
         evaluator_steps=_scaled(steps["evaluator"], scale, 10),
         replications=_scaled(d.replications, scale, 1),

@@ -84,6 +84,12 @@ class DiffusionConfig:
             raise ValueError(f"d_model ({self.d_model}) must be even and divisible by num_heads ({self.num_heads})")
         if not 0.0 <= self.cond_mask_prob < 1.0:
             raise ValueError(f"cond_mask_prob must be in [0, 1), got {self.cond_mask_prob}")
+        if not self.beta_start < self.beta_end < 1.0:
+            raise ValueError(f"beta_start ({self.beta_start}) must be below beta_end ({self.beta_end}), and both "
+                             "below 1")
+        if self.sample_steps > self.train_timesteps:
+            raise ValueError(f"sample_steps ({self.sample_steps}) is more than train_timesteps "
+                             f"({self.train_timesteps})")
 
 
 # ---------------------------------------------------------------------------------------------------- schedule

@@ -57,6 +57,8 @@ class VAEConfig:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by num_heads ({self.num_heads})")
         if self.position_embedding not in ("learned", "sine"):
             raise ValueError(f"position_embedding must be 'learned' or 'sine', got {self.position_embedding!r}")
+        if self.position_embedding == "sine" and self.d_model % 2:
+            raise ValueError(f"a sine position code needs an even d_model, got {self.d_model}")
         if self.init not in ("default", "xavier"):
             raise ValueError(f"init must be 'default' or 'xavier', got {self.init!r}")
         if type(self.smooth_output) is not int or not 0 <= self.smooth_output <= 8:

@@ -440,6 +440,9 @@ def train_from_recipe(data: Sequence[str | os.PathLike], out: str | os.PathLike,
     encoder = None  # the recipe's evaluator model names one; else the option, the recipe's own, MiniLM
     if text_encoder or "text_encoder" not in section(section(sections, "text"), "model"):
         encoder = text_encoder or recipe.get("text_encoder") or "minilm"
+        if encoder == "none":
+            raise ValueError(f"{getattr(recipe, 'source', '') or 'the recipe'}: text_encoder is none, but the text "
+                             "evaluator embeds captions: name an encoder (minilm, clip-vit-l-14)")
     config, train_config = configs(sections, "text", EvaluatorConfig, EvaluatorTrainConfig,
                                    {"text_encoder": encoder}, overrides, "evaluator.text")
     return train_evaluator(list(data), out, config=config, train_config=train_config, **options)

@@ -76,6 +76,9 @@ def fit_config(cfg: C, cache: LatentCacheData) -> tuple[C, list[str]]:
     if cfg.cond == "text":
         if len(cache.caption_text) == 0:
             raise ValueError("cond='text' but the cache holds no captions; use cond='action' or a captioned dataset")
+        if not cache.text_encoder or cache.caption_embedding.shape[1] == 0:
+            raise ValueError("cond='text' but the cache was encoded without a text encoder (--text-encoder none): "
+                             "encode it with one, or use cond='action'")
         width = cache.caption_embedding.shape[1]
         if cfg.cond_dim != width:
             changes["cond_dim"] = width

@@ -172,6 +172,9 @@ def train_vae(data: str | os.PathLike | Sequence[str | os.PathLike], out: str | 
     Returns {"step", "train_loss", "val_mpjpe_m", "best_val_mpjpe_m"} (the same on every process).
     Raises TrainingDiverged on a NaN/inf loss or gradient, leaving the last good checkpoint in place.
     """
+    if train.max_frames > model.max_len:
+        raise ValueError(f"train.max_frames ({train.max_frames}) is more than model.max_len ({model.max_len}), the "
+                         "longest window the VAE's position code covers")
     paths = shard_paths(data)
     return launch("train_vae", out, device=device, resume=resume, force=force, progress=progress,
                   body=lambda env: _train(env, paths, model, train))
