@@ -220,3 +220,11 @@ def test_any_recipe_values_build_a_config_or_raise_one_value_error(data):
         build(cls, values, "s")
     except ValueError as e:
         assert "\n" not in str(e)
+
+
+def test_a_recipe_names_the_text_encoders_lsgan_has():
+    """The recipe reader's list of text encoders (it may import no model code) is the registry's."""
+    from lsgan.models.text import available_encoders
+    from lsgan.recipes import TEXT_ENCODERS
+
+    assert list(TEXT_ENCODERS) == available_encoders()
