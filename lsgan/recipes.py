@@ -142,9 +142,10 @@ def numbers(value: Any) -> list[float]:
     return [v for v in items if isinstance(v, (int, float)) and not isinstance(v, bool)]
 
 
-def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
+def build(cls: type[T], values: dict[str, Any] | None, where: str = "", options: frozenset[str] = frozenset()) -> T:
     """A dataclass from a dict; unknown keys, values that do not fit a field's annotation and numbers outside the
-    setting's :data:`BOUNDS` are an error naming the section and the key."""
+    setting's :data:`BOUNDS` are an error naming the section and the key, or the command's option (``--max-steps``)
+    for the keys in ``options``, whose values came from the command line rather than the recipe."""
     values = dict(values or {})
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(map(str, set(values) - names))
@@ -152,12 +153,12 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
         raise ValueError(f"{where or cls.__name__}: unknown key(s) {_SHORT.repr(unknown)}; allowed: {sorted(names)}")
     hints = typing.get_type_hints(cls)
     for name, value in values.items():
+        key = f"option --{name.replace('_', '-')}" if name in options else f"recipe key {where or cls.__name__}.{name}"
         if not fits(value, hints[name]):
-            raise ValueError(f"recipe key {where or cls.__name__}.{name}: {_SHORT.repr(value)} is not "
-                             f"{kind(hints[name])}{_exponent_hint(value)}")
+            raise ValueError(f"{key}: {_SHORT.repr(value)} is not {kind(hints[name])}{_exponent_hint(value)}")
         bounds = BOUNDS.get(name)
         if bounds is not None and not all(map(bounds.holds, numbers(value))):
-            raise ValueError(f"recipe key {where or cls.__name__}.{name}: {_SHORT.repr(value)} is not "
+            raise ValueError(f"{key}: {_SHORT.repr(value)} is not "
                              f"{'each ' if isinstance(value, (list, tuple)) else ''}{bounds}")
     try:
         return cls(**values)
@@ -242,12 +243,22 @@ def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: ty
             model_overrides: dict[str, Any] | None = None,
             train_overrides: dict[str, Any] | None = None, where: str | None = None) -> tuple[T, U]:
     """The recipe's ``kind:`` section as (model config, train config), each override that is not None replacing
-    the recipe's value: what every training command builds from a recipe and its options. ``where``: the
-    section's name in error messages (default ``kind``)."""
+    the recipe's value: what every training command builds from a recipe and its options. A train config with an
+    ``against(model)`` method checks there the settings that depend on the model's (window lengths against the
+    position code), so those errors name the file too. ``where``: the section's name in error messages (default
+    ``kind``)."""
     r = section(recipe, kind, ("model", "train"))
     where = where or r.name
     if r.source:
         where = f"{r.source}: {where}"
     given = lambda values: {k: v for k, v in (values or {}).items() if v is not None}  # noqa: E731
-    return (build(model_cls, {**section(r, "model"), **given(model_overrides)}, f"{where}.model"),
-            build(train_cls, {**section(r, "train"), **given(train_overrides)}, f"{where}.train"))
+    models, trains = given(model_overrides), given(train_overrides)
+    model = build(model_cls, {**section(r, "model"), **models}, f"{where}.model", frozenset(models))
+    train = build(train_cls, {**section(r, "train"), **trains}, f"{where}.train", frozenset(trains))
+    against = getattr(train, "against", None)
+    try:
+        if against is not None:
+            against(model)
+    except ValueError as e:  # a setting that does not fit the model's: say which section
+        raise ValueError(f"{where}: {e}") from None
+    return model, train

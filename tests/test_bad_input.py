@@ -23,7 +23,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from cli_runs import linked_pipeline, lsgan, snapshot
+from cli_runs import forked_lsgan, linked_pipeline, lsgan, snapshot
 
 from lsgan.data.skeleton import JOINT_NAMES
 from lsgan.data.synthetic import generate as synthetic_clips
@@ -515,13 +515,19 @@ CASES = [
           ("sine-code-odd-width", b"vae:\n  model: {d_model: 33, num_heads: 1, position_embedding: sine}\n",
            "r.yaml: vae.model: a sine position code needs an even d_model, got 33"),
           ("windows-beyond-position-code", b"vae:\n  model: {max_len: 8}\n",
-           "train.max_frames (196) is more than model.max_len (8)"),
+           "r.yaml: vae: train.max_frames (196) is more than model.max_len (8)"),
           ("size-a-float-holds", b"vae:\n  model: {ff_size: 99999999999999999999999999}\n",
            "r.yaml: vae.model.ff_size: 99999999999999999999999999 is not from 1 to 65,536"),
           ("text-encoder-a-mapping", b"text_encoder: {name: minilm}\n",
            "r.yaml: text_encoder is one of minilm, clip-vit-l-14, none, not {'name': 'minilm'}"),
           ("alias-bomb", ALIAS_BOMB, "joint_weight: [['x', 'x', 'x', 'x', ...], [[...], [...], [...], [...], ...], "),
       )],
+    Case("recipe-evaluator-unit-above-windows", lambda w, p: ["train-evaluator", "--data", p / "synth.h5", "--recipe",
+                                                             written(w / "r.yaml", b"evaluator:\n  text:\n    model: "
+                                                                     b"{unit_length: 50}\n"), "--out", w / "run"], 1,
+         "r.yaml: evaluator.text: train.min_frames (40) is below the unit length (50)"),
+    Case("option-max-steps-zero", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--max-steps", 0,
+                                                "--out", w / "run"], 1, "option --max-steps: 0 is not from 1 to"),
     Case("recipe-evaluator-misspelt", lambda w, p: ["train-evaluator", "--data", p / "synth.h5", "--recipe",
                                                     written(w / "r.yaml", b"evaluator:\n  txet: {}\n"),
                                                     "--out", w / "run"], 1,
@@ -554,6 +560,12 @@ CASES = [
     # encode-latents, train-gan
     Case("encode-output-user-file", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae", p / "vae",
                                                   "-o", text_file(w, "c.h5")], 1, "pass --force"),
+    *[Case(f"encode-clip-{name}", lambda w, p, files=files: [
+        "encode-latents", "--data", p / "synth.h5", "--vae", p / "vae", "--text-encoder", "clip-vit-l-14",
+        "--text-encoder-path", user_run_folder(w, files), "-o", w / "c.h5"], 1,
+        "CLIP ViT-L/14 text encoder (weights + tokenizer) not found at")
+      for name, files in (("folder-empty", {"notes.txt": "x"}),
+                          ("weights-missing", {"config.json": json.dumps({"model_type": "clip_text_model"})}))],
     Case("encode-vae-not-checkpoint", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae",
                                                     user_run_folder(w, {"notes.txt": "x"}), "-o", w / "c.h5"], 1,
          "no checkpoint here"),
@@ -829,11 +841,12 @@ def test_bad_input(case: Case, pipe: Path, tmp_path: Path) -> None:
     with small_disk(w / "full", case.disk) if case.disk else contextlib.nullcontext((None, "")) as (limit, words):
         args = case.args(w, pipe)
         before = snapshot(w, pipe)
-        out = lsgan(*args, cwd=w, preexec_fn=limit)
+        out = forked_lsgan(*args, cwd=w, preexec_fn=limit)
         after = snapshot(w, pipe)
     errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
     assert out.returncode == case.code, out.stderr
     assert len(errors) == 1, out.stderr
+    assert out.stderr.rstrip().splitlines()[-1] == errors[0], f"the error runs over one line:\n{out.stderr}"
     assert case.phrase.lower() in errors[0].lower(), out.stderr
     assert words in errors[0], out.stderr
     assert "Traceback" not in out.stderr and "Warning:" not in out.stderr, out.stderr

@@ -228,3 +228,31 @@ def test_a_recipe_names_the_text_encoders_lsgan_has():
     from lsgan.recipes import TEXT_ENCODERS
 
     assert list(TEXT_ENCODERS) == available_encoders()
+
+
+def test_error_lines_are_worded_in_one_place():
+    """Every failure line comes from lsgan.cli.options.say_error: no other code prints 'error: ...' itself."""
+    import pathlib
+
+    root = pathlib.Path(__file__).resolve().parents[1] / "lsgan"
+    writers = [f"{p.relative_to(root)}:{i}" for p in sorted(root.rglob("*.py"))
+               for i, line in enumerate(p.read_text().splitlines(), 1)
+               if '"error: ' in line or "'error: " in line or '"error:"' in line]
+    assert len(writers) == 1 and writers[0].startswith("cli/options.py:"), writers
+
+
+@given(st.text())
+@settings(max_examples=200, deadline=None)
+def test_an_error_is_one_line_whatever_its_message_holds(message):
+    import click
+    from click.testing import CliRunner
+
+    from lsgan.cli.options import say_error
+
+    @click.command()
+    def command():
+        say_error(message)
+
+    out = CliRunner().invoke(command)
+    assert out.exit_code == 0
+    assert len(out.stderr.splitlines()) == 1 and out.stderr.startswith("error:") and out.stderr.endswith("\n")

@@ -18,7 +18,6 @@ import re
 import shutil
 import struct
 import subprocess
-import sys
 import zlib
 from pathlib import Path
 
@@ -27,6 +26,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 from body_models import make_model
+from cli_runs import forked_lsgan
+from test_fuzz_readers import ALLOC_HEADROOM
 from torch.utils.data import DataLoader
 
 from lsgan.data.dataset import MotionDataset, collate
@@ -53,19 +54,14 @@ vae:
 
 
 def lsgan(*args, cwd) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "lsgan.cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, env=env)
+    """The command in a fresh process (forked after the heavy imports; cli_runs.forked_lsgan)."""
+    return forked_lsgan(*args, cwd=cwd, env={k: v for k, v in os.environ.items() if k.startswith("LSGAN_")})
 
 
 def capped_lsgan(*args, cwd) -> subprocess.CompletedProcess:
     """lsgan in a child Python whose address space is capped after its imports (see the module's docstring)."""
-    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
-            "import h5py, torch, lsgan.cli, lsgan.data.dataset, lsgan.data.preprocess\n"
-            "from test_fuzz_readers import limit_memory\nlimit_memory()\n"
-            f"lsgan.cli.main(args={[str(a) for a in args]!r}, prog_name='lsgan')")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=cwd, env=env)
+    return forked_lsgan(*args, cwd=cwd, preload=("lsgan.cli", "lsgan.data.dataset", "lsgan.data.preprocess"),
+                        headroom=ALLOC_HEADROOM)
 
 
 def snapshot(folder: Path) -> dict[str, str]:

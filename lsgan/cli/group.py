@@ -7,7 +7,7 @@ import sys
 import click
 
 from lsgan import __version__
-from lsgan.cli.options import INTERRUPTED, LsganCommand, close_progress_bars
+from lsgan.cli.options import INTERRUPTED, LsganCommand, close_progress_bars, say_error
 from lsgan.cli.startup import startup_guard
 from lsgan.errors import debugging, describe
 from lsgan.interrupts import InterruptGuard
@@ -50,7 +50,7 @@ class LsganGroup(click.Group):
             code = e.exit_code
         except click.ClickException as e:
             hint = f" (see 'lsgan {e.ctx.info_name} --help')" if getattr(e, "ctx", None) is not None else ""
-            click.echo(f"error: {e.format_message()}{hint}", err=True)
+            say_error(f"{e.format_message()}{hint}")
             code = e.exit_code
         except (click.Abort, KeyboardInterrupt):
             click.echo("\ninterrupted", err=True)
@@ -58,8 +58,7 @@ class LsganGroup(click.Group):
         except Exception as e:  # noqa: BLE001 - the promise: one line, no traceback unless asked
             if debugging():
                 raise
-            close_progress_bars()
-            click.echo(f"error: {describe(e)}", err=True)
+            say_error(describe(e))
             code = 1
         return code if isinstance(code, int) else 0
 

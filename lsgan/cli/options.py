@@ -84,9 +84,15 @@ def fail(message: str) -> None:
     """Print ``error: MESSAGE`` and exit 1; under --debug re-raise the exception being handled instead."""
     if debugging() and sys.exc_info()[1] is not None:
         raise sys.exc_info()[1]
-    close_progress_bars()
-    click.echo(f"error: {message}", err=True)
+    say_error(message)
     sys.exit(1)
+
+
+def say_error(message: str) -> None:
+    """Print a failure as the one line ``error: MESSAGE`` on stderr, the message's own line breaks folded into it:
+    the only place lsgan words an error line (a test fails if another appears)."""
+    close_progress_bars()
+    click.echo("error: " + " ".join(part.strip() for part in str(message).splitlines() if part.strip()), err=True)
 
 
 def close_progress_bars() -> None:

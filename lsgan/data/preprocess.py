@@ -401,8 +401,9 @@ def preprocess(
     fault_point("preprocess.report")
     _close_staging(staging, paths)
     if not result.clips:
+        why = "; ".join(line.strip() for line in format_skips(result.skipped, report_path, groups=3).splitlines())
         raise PreprocessError(f"{getattr(source, 'root', source.name)!s}: no clip could be imported "
-                              f"({len(result.skipped)} skipped):\n{format_skips(result.skipped, report_path)}")
+                              f"({len(result.skipped)} skipped): {why}")
     return result
 
 

@@ -282,15 +282,11 @@ def _load_minilm(path: str | os.PathLike | None) -> MiniLMEncoder:
 # clip-vit-l-14: transformers' CLIPTextModelWithProjection, offline only
 
 def _clip_howto(where: str) -> str:
-    return (
-        f"CLIP ViT-L/14 text encoder (weights + tokenizer) not found at {where}. Nothing is downloaded at run time. "
-        "Run once on a machine with internet:\n"
-        "  python -c \"from transformers import CLIPTextModelWithProjection, CLIPTokenizer; "
-        f"m='{CLIP_HUB_ID}'; CLIPTextModelWithProjection.from_pretrained(m).save_pretrained('clip-l14'); "
-        "CLIPTokenizer.from_pretrained(m).save_pretrained('clip-l14')\"\n"
-        "then copy the folder here and pass --text-encoder-path clip-l14 "
-        f"(or set HF_HOME to a Hugging Face cache that holds {CLIP_HUB_ID})."
-    )
+    """One line: what is missing and how to get it (the full command is in docs/training.md)."""
+    return (f"CLIP ViT-L/14 text encoder (weights + tokenizer) not found at {where}; nothing is downloaded at run "
+            f"time: on a machine with internet save {CLIP_HUB_ID}'s CLIPTextModelWithProjection and CLIPTokenizer "
+            "with save_pretrained('clip-l14') (docs/training.md), copy the folder here and pass "
+            f"--text-encoder-path clip-l14, or set HF_HOME to a Hugging Face cache that holds {CLIP_HUB_ID}")
 
 
 @contextlib.contextmanager
@@ -380,7 +376,7 @@ def _load_clip(path: str | os.PathLike | None) -> CLIPTextEncoder:
                 source, config=config, local_files_only=True, output_loading_info=True)
             tokenizer = tokenizer_cls.from_pretrained(source, local_files_only=True)
     except OSError as e:
-        raise TextEncoderUnavailable(f"{_clip_howto(where)}\n(transformers said: {e})") from e
+        raise TextEncoderUnavailable(f"{_clip_howto(where)} (transformers said: {' '.join(str(e).split())})") from e
     missing = sorted(info.get("missing_keys") or [])
     if missing or info.get("mismatched_keys"):
         raise TextEncoderUnavailable(

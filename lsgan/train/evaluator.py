@@ -84,6 +84,14 @@ class EvaluatorTrainConfig(WindowTrainConfig):
     group_size: int = 32  # R-precision groups
     eval_repeats: int = 10  # held-out R-precision: mean over this many shuffles
 
+    def against(self, model: EvaluatorConfig) -> None:
+        """Refuse windows the motion encoder cannot take (recipes check it when read)."""
+        if self.max_frames > model.max_motion_length:
+            raise ValueError(f"train.max_frames ({self.max_frames}) exceeds model.max_motion_length "
+                             f"({model.max_motion_length})")
+        if self.min_frames < model.unit_length:
+            raise ValueError(f"train.min_frames ({self.min_frames}) is below the unit length ({model.unit_length})")
+
 
 @dataclass
 class ActionTrainConfig(WindowTrainConfig):
@@ -194,10 +202,7 @@ def train_evaluator(data: str | os.PathLike | Sequence[str | os.PathLike], out: 
 
 def _train_text(env: Env, paths: list[str], cfg: EvaluatorConfig, tcfg: EvaluatorTrainConfig,
                 text_encoder_path: str | os.PathLike | None) -> dict:
-    if tcfg.max_frames > cfg.max_motion_length:
-        raise ValueError(f"train.max_frames ({tcfg.max_frames}) exceeds model.max_motion_length ({cfg.max_motion_length})")
-    if tcfg.min_frames < cfg.unit_length:
-        raise ValueError(f"train.min_frames ({tcfg.min_frames}) is below the unit length ({cfg.unit_length})")
+    tcfg.against(cfg)
     prev = env.previous("evaluator")
     seed_everything(tcfg.seed)
     ds = MotionDataset(paths, "train", min_frames=tcfg.min_frames, max_frames=tcfg.max_frames,
@@ -367,7 +372,8 @@ def _train_action(env: Env, paths: list[str], cfg: ActionClassifierConfig, tcfg:
         raise ValueError(f"no action-labelled training clips of {tcfg.min_frames}+ frames in {paths}")
     num_classes = cfg.num_classes or len(ds.action_names)
     if num_classes < len(ds.action_names):
-        raise ValueError(f"num_classes={num_classes} but the data has {len(ds.action_names)} action labels")
+        raise ValueError(f"num_classes={num_classes} but {', '.join(map(str, paths))} hold(s) {len(ds.action_names)} "
+                         "action labels")
     cfg = ActionClassifierConfig(**{**asdict(cfg), "num_classes": num_classes})
     val_split, test_split = _splits(paths)
     val_ds = ActionWindows(paths, val_split, **kw) if val_split else None

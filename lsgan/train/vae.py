@@ -95,6 +95,12 @@ class VAETrainConfig(WindowTrainConfig):
         done = (step - self.warmup_steps) / max(1, self.max_steps - self.warmup_steps)
         return self.lr * 0.5 * (1.0 + math.cos(math.pi * min(1.0, done)))
 
+    def against(self, model: VAEConfig) -> None:
+        """Refuse windows longer than the model's position code covers (recipes check it when read)."""
+        if self.max_frames > model.max_len:
+            raise ValueError(f"train.max_frames ({self.max_frames}) is more than model.max_len ({model.max_len}), "
+                             "the longest window the VAE's position code covers")
+
 
 def mld_vae_loss(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor, mask: torch.Tensor,
                  kl_weight: float, mean: torch.Tensor, std: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -172,9 +178,7 @@ def train_vae(data: str | os.PathLike | Sequence[str | os.PathLike], out: str | 
     Returns {"step", "train_loss", "val_mpjpe_m", "best_val_mpjpe_m"} (the same on every process).
     Raises TrainingDiverged on a NaN/inf loss or gradient, leaving the last good checkpoint in place.
     """
-    if train.max_frames > model.max_len:
-        raise ValueError(f"train.max_frames ({train.max_frames}) is more than model.max_len ({model.max_len}), the "
-                         "longest window the VAE's position code covers")
+    train.against(model)
     paths = shard_paths(data)
     return launch("train_vae", out, device=device, resume=resume, force=force, progress=progress,
                   body=lambda env: _train(env, paths, model, train))
