@@ -51,19 +51,19 @@ def forked_lsgan(*args, cwd: Path, env: dict | None = None, preexec_fn=None, tim
                  preload: tuple[str, ...] = (), headroom: int | None = None) -> subprocess.CompletedProcess:
     """:func:`lsgan`, in a process forked from tests/zygote.py, which has torch, numpy, scipy and h5py imported
     already and nothing of lsgan: the same command in a process of its own, about two seconds sooner. For the
-    bad-input tables, which run hundreds of refused commands. A ``preexec_fn``, or an environment that changes
-    what those libraries read when they load, runs through :func:`lsgan` instead. Children of one zygote share
+    bad-input tables, which run hundreds of refused commands. A command whose environment changes what those
+    libraries read when they load (OMP_NUM_THREADS, ...) gets a zygote started under it; one with a ``preexec_fn``
+    runs through :func:`lsgan`. Children of one zygote share
     its string-hash seed, so tests of determinism across processes use :func:`lsgan`. ``preload``: modules the
     child imports before the command; ``headroom``: then its address space is capped at what it maps plus this
     many bytes (a reader's allocation beyond it is a MemoryError, not the machine's memory)."""
+    if preexec_fn is not None:
+        if preload or headroom is not None:
+            raise ValueError("preload and headroom are for forked commands, which take no preexec_fn")
+        return lsgan(*args, cwd=cwd, env=env, preexec_fn=preexec_fn)
     full_env = {k: v for k, v in os.environ.items() if k not in ("LSGAN_DEBUG", "LSGAN_FAULT")}
     full_env.update({"OMP_NUM_THREADS": "1", **(env or {})})
-    zygote = _zygote()
-    differs = {k for k in {*full_env, *zygote.env} if full_env.get(k) != zygote.env.get(k)}
-    if preexec_fn is not None or any(k.startswith(_READ_AT_IMPORT) for k in differs):
-        if preload or headroom is not None:
-            raise ValueError("preload and headroom need the zygote's environment")
-        return lsgan(*args, cwd=cwd, env=env, preexec_fn=preexec_fn)
+    zygote = _zygote(tuple(sorted((k, v) for k, v in full_env.items() if k.startswith(_READ_AT_IMPORT))))
     argv = [str(a) for a in args]
     with tempfile.TemporaryDirectory(prefix="lsgan-run-") as d:
         streams = {name: Path(d) / name for name in ("stdout", "stderr")}
@@ -85,13 +85,13 @@ def forked_lsgan(*args, cwd: Path, env: dict | None = None, preexec_fn=None, tim
 
 
 class _Zygote:
-    """tests/zygote.py running, and its replies read line by line from the pipe (no read-ahead)."""
+    """tests/zygote.py running with ``loading`` as the variables its libraries read when they load, and its replies
+    read line by line from the pipe (no read-ahead)."""
 
-    def __init__(self) -> None:
-        self.env = {k: v for k, v in os.environ.items() if k not in ("LSGAN_DEBUG", "LSGAN_FAULT")}
-        self.env["OMP_NUM_THREADS"] = "1"
-        self.proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("zygote.py"))], env=self.env,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    def __init__(self, loading: dict[str, str]) -> None:
+        env = {k: v for k, v in os.environ.items() if not k.startswith(_READ_AT_IMPORT)}
+        self.proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("zygote.py"))],
+                                     env={**env, **loading}, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         atexit.register(self.proc.kill)
 
     def reply(self, timeout: float) -> dict:
@@ -107,8 +107,9 @@ class _Zygote:
 
 
 @functools.cache
-def _zygote() -> _Zygote:
-    return _Zygote()
+def _zygote(loading: tuple[tuple[str, str], ...]) -> _Zygote:
+    """The zygote whose libraries loaded under these variables (one per distinct set the tests use)."""
+    return _Zygote(dict(loading))
 
 
 def _at_default_sigint(then: Callable[[], None] | None) -> None:

@@ -29,3 +29,14 @@ def test_a_forked_command_can_be_capped_and_killed(tmp_path):
                      timeout=0.5)
     fine = forked_lsgan("preprocess", "--source", "synthetic", "--num-clips", 4, "-o", "s.h5", cwd=tmp_path)
     assert fine.returncode == 0 and (tmp_path / "s.h5").is_file()
+
+
+def test_a_command_whose_libraries_load_under_other_variables_gets_its_own_zygote(tmp_path, monkeypatch):
+    from cli_runs import _zygote
+
+    before = _zygote.cache_info().currsize
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")  # a variable torch reads when it loads, as a test may leave
+    out = forked_lsgan("preprocess", "--source", "synthetic", "--num-clips", 4, "-o", "s.h5", cwd=tmp_path,
+                       env={"OMP_NUM_THREADS": "2"}, headroom=2 << 30)
+    assert out.returncode == 0, out.stderr
+    assert _zygote.cache_info().currsize == before + 1
