@@ -351,6 +351,12 @@ def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, se
     the constrained motions then stand (a continuation's or in-between's: in the frame of the motions they join).
     """
     control_settings = control_settings or ControlSettings()
+    longest = max((r.frames for r in requests), default=0)
+    if longest > loaded.max_frames:
+        raise ValueError(f"{loaded.vae}: this VAE decodes at most {loaded.max_frames} frames (its max_len); "
+                         f"asked for {longest}")
+    if num < 1 or batch_size < 1 or not requests:
+        raise ValueError(f"nothing to generate: {len(requests)} requests, num {num}, batch size {batch_size}")
     noise, g = draw_noise(seed, len(requests) * num, noise_dim(loaded.model, loaded.meta))
     each = None if constraints is None else [check_constraints(loaded.vae_meta, constraints, r) for r in requests for _ in
                                              range(num)]

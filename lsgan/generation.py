@@ -20,6 +20,7 @@ from lsgan.motion.rigid import make_rigid
 from lsgan.io import atomic_file
 
 
+MIN_FRAMES = 4  # the shortest motion lsgan makes (the decoder's time filter and the feet need a few frames)
 CPU_DECODE_FRAMES = 4096  # padded frames per decoder pass on a CPU
 
 
@@ -130,11 +131,14 @@ def read_prompts(path: str | os.PathLike, default_frames: int) -> list[Request]:
     out = []
     with reading(path, "a prompts file of UTF-8 text"):
         text = Path(path).read_text(encoding="utf-8")
-    for line in text.splitlines():
+    for number, line in enumerate(text.split("\n"), 1):  # lines as an editor counts them, not str.splitlines's
         line = line.strip()
         if not line or line.startswith("//"):
             continue
         m = re.fullmatch(r"(.*)#\s*(\d+)\s*", line)
+        if m and not MIN_FRAMES <= int(m.group(2)) <= 100_000:
+            raise ValueError(f"{path}: line {number} asks for {int(m.group(2))} frames: a motion has {MIN_FRAMES} "
+                             "to 100,000")
         out.append(Request(text=m.group(1).strip(), frames=int(m.group(2))) if m else Request(text=line, frames=default_frames))
     return out
 

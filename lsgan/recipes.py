@@ -95,7 +95,7 @@ class Bounds(typing.NamedTuple):
 
     def __str__(self) -> str:
         def number(v: float) -> str:
-            return f"{int(v):,}" if v == int(v) and abs(v) < 1e16 else f"{v:g}"
+            return f"{int(v):,}" if isinstance(v, int) or (v == int(v) and abs(v) < 1e16) else f"{v:g}"
 
         return f"{'above' if self.open_low else 'from'} {number(self.low)} to {number(self.high)}"
 

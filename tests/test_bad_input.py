@@ -437,7 +437,7 @@ def user_run_folder(w: Path, files: dict) -> Path:
     d = w / "run"
     d.mkdir()
     for name, text in files.items():
-        (d / name).write_text(text)
+        (d / name).write_bytes(text) if isinstance(text, bytes) else (d / name).write_text(text)
     return d
 
 
@@ -526,8 +526,15 @@ CASES = [
                                                              written(w / "r.yaml", b"evaluator:\n  text:\n    model: "
                                                                      b"{unit_length: 50}\n"), "--out", w / "run"], 1,
          "r.yaml: evaluator.text: train.min_frames (40) is below the unit length (50)"),
-    Case("option-max-steps-zero", lambda w, p: ["train-vae", "--data", p / "synth.h5", "--max-steps", 0,
-                                                "--out", w / "run"], 1, "option --max-steps: 0 is not from 1 to"),
+    *[Case(f"option-{name}", lambda w, p, args=args: [*args[:1], *(x(p) if callable(x) else x for x in args[1:]),
+                                                        "--out", w / "run"], 2, phrase)
+      for name, args, phrase in (
+          ("max-steps-zero", ("train-vae", "--data", lambda p: p / "synth.h5", "--max-steps", 0),
+           "'--max-steps': 0 is not in the range 1<=x<=1000000000"),
+          ("batch-size-zero", ("train-vae", "--data", lambda p: p / "synth.h5", "--batch-size", 0),
+           "'--batch-size': 0 is not in the range 1<=x<=1000000000"),
+          ("seed-negative", ("train-gan", "--cache", lambda p: p / "cache.h5", "--seed", -1),
+           "'--seed': -1 is not in the range 0<=x<=9223372036854775807"))],
     Case("recipe-evaluator-misspelt", lambda w, p: ["train-evaluator", "--data", p / "synth.h5", "--recipe",
                                                     written(w / "r.yaml", b"evaluator:\n  txet: {}\n"),
                                                     "--out", w / "run"], 1,
@@ -565,7 +572,18 @@ CASES = [
         "--text-encoder-path", user_run_folder(w, files), "-o", w / "c.h5"], 1,
         "CLIP ViT-L/14 text encoder (weights + tokenizer) not found at")
       for name, files in (("folder-empty", {"notes.txt": "x"}),
-                          ("weights-missing", {"config.json": json.dumps({"model_type": "clip_text_model"})}))],
+                          ("weights-missing", {"config.json": json.dumps({
+                              "model_type": "clip_text_model", "hidden_size": 768, "intermediate_size": 3072,
+                              "num_hidden_layers": 12, "num_attention_heads": 12, "projection_dim": 768})}))],
+    *[Case(f"encode-clip-{name}", lambda w, p, files=files: [
+        "encode-latents", "--data", p / "synth.h5", "--vae", p / "vae", "--text-encoder", "clip-vit-l-14",
+        "--text-encoder-path", user_run_folder(w, files), "-o", w / "c.h5"], 1, phrase)
+      for name, files, phrase in (
+          ("config-not-json", {"config.json": "{bad json"}, "run: not a CLIP ViT-L/14 text-encoder folder"),
+          ("config-a-list", {"config.json": "[]"}, "run: holds a 'list' model, not a CLIP checkpoint"),
+          ("config-not-utf8", {"config.json": b"\xff\xfe{}"}, "run: not a CLIP ViT-L/14 text-encoder folder"),
+          ("config-width-text", {"config.json": json.dumps({"model_type": "clip_text_model", "hidden_size": "x"})},
+           "run: not a CLIP ViT-L/14 text-encoder folder"))],
     Case("encode-vae-not-checkpoint", lambda w, p: ["encode-latents", "--data", p / "synth.h5", "--vae",
                                                     user_run_folder(w, {"notes.txt": "x"}), "-o", w / "c.h5"], 1,
          "no checkpoint here"),
@@ -575,7 +593,22 @@ CASES = [
     Case("generate-into-earlier-run", lambda w, p: generate_args(p, p / "gen"), 1, "pass --force"),
     Case("generate-gan-is-vae", lambda w, p: ["generate", "--gan", p / "vae", "--vae", p / "vae", "--text", "x",
                                               "-o", w / "out"], 1, "vae"),
-    Case("generate-too-few-frames", lambda w, p: generate_args(p, w / "out", "--frames", 2), 2, "at least 4 frames"),
+    Case("generate-too-few-frames", lambda w, p: generate_args(p, w / "out", "--frames", 2), 2,
+         "'--frames': 2 is not in the range 4<=x<=100000"),
+    *[Case(f"generate-{name}", lambda w, p, extra=extra: generate_args(p, w / "out", *extra), 2, phrase)
+      for name, extra, phrase in (
+          ("seconds-nan", ("--seconds", "nan"), "'--seconds': 'nan' is not a number"),
+          ("seconds-inf", ("--seconds", "inf"), "'--seconds': inf is not in the range"),
+          ("num-zero", ("--num", 0), "'--num': 0 is not in the range"),
+          ("batch-size-zero", ("--batch-size", 0), "'--batch-size': 0 is not in the range"),
+          ("seed-negative", ("--seed", -1), "'--seed': -1 is not in the range"),
+          ("seed-beyond-64-bits", ("--seed", 2**64), "'--seed': 18446744073709551616 is not in the range"))],
+    Case("generate-frames-beyond-the-vae", lambda w, p: generate_args(p, w / "out", "--frames", 201), 1,
+         "vae: this VAE decodes at most 200 frames (its max_len); asked for 201"),
+    Case("generate-prompt-line-too-short", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae",
+                                                         "--prompts", written(w / "prompts.txt", b"walk#40\nrun#3\n"),
+                                                         "-o", w / "out"], 1,
+         "prompts.txt: line 2 asks for 3 frames: a motion has 4 to 100,000"),
     Case("generate-no-prompt", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "-o", w / "out"], 2,
          "--text"),
     Case("generate-output-is-file", lambda w, p: generate_args(p, text_file(w)), 1, "not a folder"),

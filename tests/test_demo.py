@@ -55,7 +55,7 @@ def test_settings_follow_the_recipe_and_shrink_with_floors(monkeypatch):
     ("demo: {clips: 0}", "r.yaml: demo.clips: 0 is not from 1 to 1,000,000,000"),
     ("demo: {clips: 60}", "r.yaml: demo: clips must be at least 400"),
     ("text_encoder: none", "r.yaml: text_encoder is none, but the demo trains a text-to-motion GAN"),
-    ("demo: {seed: -1}", "r.yaml: demo.seed: -1 is not from 0 to 9.22337e+18"),
+    ("demo: {seed: -1}", "r.yaml: demo.seed: -1 is not from 0 to 9,223,372,036,854,775,807"),
     ("demo: {1: 2, zz: 3}", "r.yaml: demo: unknown key(s) ['1', 'zz']"),
     ("vae: {model: {num_heads: 0}}", "r.yaml: vae.model.num_heads: 0 is not from 1 to 1,024"),
     ("evaluator: {text: {train: {val_every: 0}}}", "r.yaml: evaluator.text.train.val_every: 0 is not from 1"),

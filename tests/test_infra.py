@@ -242,8 +242,12 @@ def test_error_lines_are_worded_in_one_place():
 
 
 @given(st.text())
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=300, deadline=None)
 def test_an_error_is_one_line_whatever_its_message_holds(message):
+    """Any message prints as one line, with what a terminal would act on (line breaks, escapes, bidi marks)
+    written as escapes: no file name can add a line, move the cursor or wipe the 'error:' before it."""
+    import unicodedata
+
     import click
     from click.testing import CliRunner
 
@@ -256,3 +260,7 @@ def test_an_error_is_one_line_whatever_its_message_holds(message):
     out = CliRunner().invoke(command)
     assert out.exit_code == 0
     assert len(out.stderr.splitlines()) == 1 and out.stderr.startswith("error:") and out.stderr.endswith("\n")
+    shown = out.stderr[len("error: "):-1]
+    assert not any(unicodedata.category(c) in ("Cc", "Cf", "Cs", "Zl", "Zp") for c in shown.replace("\t", ""))
+    plain = all(c == "\t" or unicodedata.category(c) not in ("Cc", "Cf", "Cs", "Zl", "Zp") for c in message)
+    assert (shown == message) == plain  # a message a terminal shows as it is prints unchanged, any other escaped

@@ -19,6 +19,7 @@ import shutil
 import struct
 import subprocess
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -140,6 +141,15 @@ def _missing_dataset(p: Path, run: Path) -> None:
         del f["clips/length"]
 
 
+def _stats(values: dict[str, float]) -> Callable[[Path, Path], None]:
+    def make(p: Path, run: Path) -> None:
+        shutil.copy(run / "synth.h5", p)
+        with h5py.File(p, "r+") as f:
+            for name, value in values.items():
+                f[name][5] = value
+    return make
+
+
 def _cache_as_shard(p: Path, run: Path) -> None:
     shutil.copy(run / "cache.h5", p)
 
@@ -151,6 +161,9 @@ BAD_SHARDS = {
     "other-hdf5": (_other_hdf5, "not an lsgan motion shard (no format attribute)"),
     "missing-dataset": (_missing_dataset, "not an lsgan motion shard (missing clips/length)"),
     "a-cache": (_cache_as_shard, "not an lsgan motion shard (format attribute is 'lsgan-latent-cache')"),
+    **{f"stats-{name}": (_stats(values), "stats/mean and stats/std hold 1 value that cannot normalise features")
+       for name, values in (("std-zero", {"stats/std": 0.0}), ("std-negative", {"stats/std": -1.0}),
+                            ("std-nan", {"stats/std": float("nan")}), ("mean-inf", {"stats/mean": float("inf")}))},
 }
 
 

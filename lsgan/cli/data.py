@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, Out, fail, stopped
+from lsgan.cli.options import In, Out, fail, setting, stopped
 
 
 SOURCES = ("synthetic", "bvh", "humanml3d", "joints", "amass", "humanact12")
@@ -75,7 +75,7 @@ Examples:
 @click.option("--device", default="cpu", show_default=True, help="amass: torch device for the body model (cpu, cuda).")
 @click.option("--up-axis", type=click.Choice(["y", "z"]), default="y", show_default=True, help="humanact12: up axis of joints3D.")
 @click.option("--num-clips", default=400, show_default=True, help="synthetic: number of clips.")
-@click.option("--seed", default=0, show_default=True, help="synthetic: random seed.")
+@click.option("--seed", default=0, show_default=True, type=setting("seed"), help="synthetic: random seed.")
 @click.option("--mirror/--no-mirror", default=None, help="Add mirrored copies (default: per source; on for bvh, amass).")
 @click.option("--min-frames", default=10, show_default=True, help="Skip clips shorter than this (20 fps frames).")
 @click.option("--workers", default=1, show_default=True, help="Worker processes.")

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, NamedIn, Out, fail
+from lsgan.cli.options import In, NamedIn, Out, fail, setting
 
 
 @main.command(epilog="""\b
@@ -40,7 +40,7 @@ Examples:
 @click.option("--fid-reference", type=click.Choice(["separate", "same"]), default=None,
               help="Text-to-motion FID's real set: a separate real pass (T2M, MDM) or, for model rows, the draw "
                    "that gave their captions and lengths (MLD).  [default: separate]")
-@click.option("--seed", default=0, show_default=True)
+@click.option("--seed", default=0, show_default=True, type=setting("seed"))
 @click.option("--device", default="auto", show_default=True)
 @click.option("-o", "--output", required=True, type=Out(), help="Writes OUTPUT.md and OUTPUT.json.")
 @click.option("--force", is_flag=True, help="Replace OUTPUT.md/.json that lsgan wrote (never other files).")
@@ -136,7 +136,7 @@ Examples:
 @click.option("--per-class", default=50, show_default=True, help="Clips per action.")
 @click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps.")
 @click.option("--guidance", type=float, help="Diffusion: guidance scale.")
-@click.option("--seed", default=0, show_default=True)
+@click.option("--seed", default=0, show_default=True, type=setting("seed"))
 @click.option("--device", default="auto", show_default=True)
 @click.option("-o", "--output", required=True, type=Out(), help="PNG file.")
 @click.option("--force", is_flag=True, help="Replace an existing PNG that lsgan wrote (never another file).")

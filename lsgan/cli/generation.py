@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, MaybeIn, Out, fail
+from lsgan.cli.options import Finite, In, MaybeIn, Out, fail, setting
 from lsgan.errors import describe
 
 
@@ -46,12 +46,13 @@ Examples:
 @click.option("--join", type=click.Choice(["crossfade", "continue"]), help="--timeline: how segments meet "
               "(default crossfade: blended over --overlap frames; continue: each segment optimised to start with the "
               "last 5 frames of the motion so far, torch runtime).")
-@click.option("--frames", type=int, help="Length in frames at 20 fps (default 120).")
-@click.option("--seconds", type=float, help="Length in seconds (instead of --frames).")
-@click.option("--num", default=1, show_default=True, help="Motions per prompt or action.")
-@click.option("--seed", default=0, show_default=True, help="Random seed: the same seed gives the same motions.")
+@click.option("--frames", type=click.IntRange(4, 100_000), help="Length in frames at 20 fps (default 120).")
+@click.option("--seconds", type=Finite(0.2, 5_000), help="Length in seconds (instead of --frames).")
+@click.option("--num", default=1, show_default=True, type=click.IntRange(1, 100_000), help="Motions per prompt or action.")
+@click.option("--seed", default=0, show_default=True, type=setting("seed"),
+              help="Random seed: the same seed gives the same motions.")
 @click.option("--text-encoder-path", type=In(exists=True), help="Local weights of the GAN's text encoder (CLIP).")
-@click.option("--batch-size", default=256, show_default=True)
+@click.option("--batch-size", default=256, show_default=True, type=click.IntRange(1, 1_000_000))
 @click.option("--device", default="auto", show_default=True)
 @click.option("--steps", type=click.IntRange(1), help="Diffusion: DDIM steps (default: the checkpoint's, 50 in MLD).")
 @click.option("--guidance", type=float, help="Diffusion: classifier-free guidance scale (default: the checkpoint's).")

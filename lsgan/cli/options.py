@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import unicodedata
 
 import click
 
@@ -27,6 +28,25 @@ class Out(In):
     """A path the command writes (a file, a folder, or the stem of several files)."""
 
     role = "output"
+
+
+def setting(name: str) -> click.IntRange:
+    """The bounds of the recipe setting ``name`` (lsgan.recipes.BOUNDS) as a click type: an override beyond them
+    is a usage error (exit 2) before anything runs, by the same table that checks the recipe."""
+    from lsgan.recipes import BOUNDS
+
+    bounds = BOUNDS[name]
+    return click.IntRange(int(bounds.low), int(bounds.high), min_open=bounds.open_low)
+
+
+class Finite(click.FloatRange):
+    """A float in a range that is also a number: click's FloatRange lets nan through (no comparison holds)."""
+
+    def convert(self, value, param, ctx):
+        number = super().convert(value, param, ctx)
+        if number != number:
+            self.fail(f"{value!r} is not a number", param, ctx)
+        return number
 
 
 class NamedIn(click.ParamType):
@@ -89,10 +109,24 @@ def fail(message: str) -> None:
 
 
 def say_error(message: str) -> None:
-    """Print a failure as the one line ``error: MESSAGE`` on stderr, the message's own line breaks folded into it:
-    the only place lsgan words an error line (a test fails if another appears)."""
+    """Print a failure as the one line ``error: MESSAGE`` on stderr (:func:`one_line`): the only place lsgan words
+    an error line (a test fails if another appears)."""
     close_progress_bars()
-    click.echo("error: " + " ".join(part.strip() for part in str(message).splitlines() if part.strip()), err=True)
+    click.echo("error: " + one_line(str(message)), err=True)
+
+
+def one_line(text: str) -> str:
+    """``text`` with every character a terminal would act on written as its escape (a line break as ``\\n``, an
+    ESC as ``\\x1b``), and a byte of a file name that was not UTF-8 as ``\\xNN``: one line that says exactly
+    what the name holds, which no name can move or wipe."""
+    def shown(c: str) -> str:
+        if "\udc80" <= c <= "\udcff":  # os.fsdecode's escape of an undecodable byte
+            return f"\\x{ord(c) - 0xDC00:02x}"
+        if c == "\t" or unicodedata.category(c) not in ("Cc", "Cf", "Cs", "Zl", "Zp"):
+            return c
+        return repr(c)[1:-1] if len(repr(c)) > 3 else f"\\u{ord(c):04x}"
+
+    return "".join(map(shown, text))
 
 
 def close_progress_bars() -> None:

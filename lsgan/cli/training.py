@@ -8,7 +8,7 @@ import sys
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, MaybeIn, Out, fail, load_recipe_or_fail, plainly, stopped
+from lsgan.cli.options import In, MaybeIn, Out, fail, load_recipe_or_fail, plainly, setting, stopped
 
 
 @main.command(epilog="""\b
@@ -69,9 +69,9 @@ def cache_training_options(command):
         click.option("--cond", type=click.Choice(["text", "action"]),
                      help="Condition on caption embeddings or action labels."),
         click.option("--out", required=True, type=Out(), help="Run folder (checkpoints last/ best/, log.csv)."),
-        click.option("--max-steps", type=int, help="Override the recipe's number of training steps (a GAN's: generator "
+        click.option("--max-steps", type=setting("max_steps"), help="Override the recipe's number of training steps (a GAN's: generator "
                                                         "steps)."),
-        click.option("--seed", type=int),
+        click.option("--seed", type=setting("seed")),
         click.option("--cuda-graph/--no-cuda-graph", default=None,
                      help="On one CUDA device, replay each step as one CUDA graph (default: the recipe's, else on); "
                           "the same updates either way."),
@@ -118,9 +118,9 @@ Examples:
 @click.option("--data", multiple=True, required=True, type=In(exists=True, dir_okay=False), help="Shard(s) to train on.")
 @click.option("--recipe", type=MaybeIn(), help="Recipe YAML (or a name in recipes/); its vae: section sets every hyperparameter.")
 @click.option("--out", required=True, type=Out(), help="Run folder (checkpoints last/ best/, log.csv).")
-@click.option("--max-steps", type=int, help="Override the recipe's step budget.")
-@click.option("--batch-size", type=int, help="Override the recipe's batch size.")
-@click.option("--seed", type=int, help="Override the recipe's seed.")
+@click.option("--max-steps", type=setting("max_steps"), help="Override the recipe's step budget.")
+@click.option("--batch-size", type=setting("batch_size"), help="Override the recipe's batch size.")
+@click.option("--seed", type=setting("seed"), help="Override the recipe's seed.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--force", is_flag=True, help="Start over in --out, removing the earlier run's own files (never others).")
@@ -223,9 +223,9 @@ Examples:
 @click.option("--kind", type=click.Choice(["text", "action"]),
               help="text: text-motion evaluator (captions); action: action-recognition GRU (action labels). "
                    "Default: the recipe's only evaluator kind, else text.")
-@click.option("--max-steps", type=int, help="Override the recipe's number of training steps.")
-@click.option("--batch-size", type=int, help="Override the recipe's batch size.")
-@click.option("--seed", type=int, help="Override the recipe's seed.")
+@click.option("--max-steps", type=setting("max_steps"), help="Override the recipe's number of training steps.")
+@click.option("--batch-size", type=setting("batch_size"), help="Override the recipe's batch size.")
+@click.option("--seed", type=setting("seed"), help="Override the recipe's seed.")
 @click.option("--text-encoder", help="text: frozen sentence encoder, minilm or clip-vit-l-14 (default: the recipe's, else minilm).")
 @click.option("--text-encoder-path", type=In(exists=True), help="text: local folder of the sentence encoder's weights.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N.")

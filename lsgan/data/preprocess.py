@@ -310,7 +310,8 @@ def _run_chunks(source, plan: _Plan, paths: list[Path], todo: list[int], *, mirr
     def finished(k: int, result: dict) -> None:
         if strict and result["skips"]:
             s = result["skips"][0]
-            raise PreprocessError(f"{s['item']}{' [' + s['clip'] + ']' if s['clip'] else ''}: {s['reason']}")
+            reason = s["reason"].removeprefix(f"{s['item']}: ")  # a reader's reason may name the file already
+            raise PreprocessError(f"{s['item']}{' [' + s['clip'] + ']' if s['clip'] else ''}: {reason}")
         _save_chunk(paths[k], plan.keys[k], result)
         progress(len(plan.chunks[k]))
         fault_point("preprocess.chunk")

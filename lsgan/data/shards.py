@@ -669,6 +669,10 @@ class Shard:
         self.mirror_of = strings("clips/mirror_of")
         self.mean = numbers(f["stats/mean"])
         self.std = numbers(f["stats/std"])
+        bad = int(np.sum(~(np.isfinite(self.std) & (self.std > 0)) | ~np.isfinite(self.mean)))
+        if bad:
+            raise DataFileError(f"{self.path}: stats/mean and stats/std hold {bad} value{'s' * (bad != 1)} that cannot "
+                                "normalise features (a std of zero or below, or a value not finite)")
         self.stats_origin = f["stats"].attrs.get("origin", "")
         self._check_table(f)
         self._captions = _read_captions(f, strings, len(self.names), int(f.attrs["format_version"]))

@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from lsgan.errors import FileContentError, reason
 from lsgan.models.attention import attend
 from lsgan.models.packed import pack_linears
 
@@ -344,6 +345,37 @@ def clip_l14_text_tower() -> nn.Module:
     return CLIPTextModelWithProjection(CLIPTextConfig(**CLIP_L14_TEXT)).eval().requires_grad_(False)
 
 
+def _clip_parts(config_file: Path, source: str, where: str, config_cls, model_cls, tokenizer_cls) -> tuple:
+    """The CLIP text tower and tokenizer saved at ``source`` (any width: the tests load small stand-ins; a GAN checks
+    the width against its condition's)."""
+    raw = json.loads(config_file.read_text())
+    if not isinstance(raw, dict) or raw.get("model_type") not in ("clip", "clip_text_model"):
+        kind = raw.get("model_type") if isinstance(raw, dict) else type(raw).__name__
+        raise FileContentError(f"{where}: holds a {kind!r} model, not a CLIP checkpoint")
+    try:
+        with _quiet_transformers():
+            config = config_cls.from_pretrained(source, local_files_only=True)
+            if raw["model_type"] == "clip":  # full CLIPModel: the projection width is a top-level field
+                config.projection_dim = raw.get("projection_dim", config.projection_dim)
+            model, info = model_cls.from_pretrained(source, config=config, local_files_only=True,
+                                                    output_loading_info=True)
+            tokenizer = tokenizer_cls.from_pretrained(source, local_files_only=True)
+    except OSError as e:
+        raise TextEncoderUnavailable(f"{_clip_howto(where)} (transformers said: {' '.join(str(e).split())})") from e
+    missing = sorted(info.get("missing_keys") or [])
+    if missing or info.get("mismatched_keys"):
+        raise TextEncoderUnavailable(
+            f"{where} lacks CLIP text weights (missing: {missing[:5]}, mismatched: "
+            f"{sorted(info.get('mismatched_keys') or [])[:5]}). {_clip_howto(where)}")
+    if not 512 <= len(tokenizer) <= config.vocab_size:
+        # transformers builds an empty tokenizer when the files are absent, so check the vocabulary:
+        # CLIP's byte-level BPE has at least 2 x 256 byte symbols and no id beyond the embedding table.
+        raise TextEncoderUnavailable(
+            f"{where} has no usable CLIP tokenizer ({len(tokenizer)} tokens for a {config.vocab_size}-token "
+            f"model; save the tokenizer beside the weights). {_clip_howto(where)}")
+    return model, tokenizer
+
+
 def _load_clip(path: str | os.PathLike | None) -> CLIPTextEncoder:
     try:
         import transformers
@@ -364,30 +396,13 @@ def _load_clip(path: str | os.PathLike | None) -> CLIPTextEncoder:
         config_file = folder / "config.json"
     if not isinstance(config_file, (str, Path)) or not Path(config_file).is_file():
         raise TextEncoderUnavailable(_clip_howto(where))
-    raw = json.loads(Path(config_file).read_text())
-    if raw.get("model_type") not in ("clip", "clip_text_model"):
-        raise ValueError(f"{where} holds a {raw.get('model_type')!r} model, not a CLIP checkpoint")
     try:
-        with _quiet_transformers():
-            config = CLIPTextConfig.from_pretrained(source, local_files_only=True)
-            if raw["model_type"] == "clip":  # full CLIPModel: the projection width is a top-level field
-                config.projection_dim = raw.get("projection_dim", config.projection_dim)
-            model, info = CLIPTextModelWithProjection.from_pretrained(
-                source, config=config, local_files_only=True, output_loading_info=True)
-            tokenizer = tokenizer_cls.from_pretrained(source, local_files_only=True)
-    except OSError as e:
-        raise TextEncoderUnavailable(f"{_clip_howto(where)} (transformers said: {' '.join(str(e).split())})") from e
-    missing = sorted(info.get("missing_keys") or [])
-    if missing or info.get("mismatched_keys"):
-        raise TextEncoderUnavailable(
-            f"{where} lacks CLIP text weights (missing: {missing[:5]}, mismatched: "
-            f"{sorted(info.get('mismatched_keys') or [])[:5]}). {_clip_howto(where)}")
-    if not 512 <= len(tokenizer) <= config.vocab_size:
-        # transformers builds an empty tokenizer when the files are absent, so check the vocabulary:
-        # CLIP's byte-level BPE has at least 2 x 256 byte symbols and no id beyond the embedding table.
-        raise TextEncoderUnavailable(
-            f"{where} has no usable CLIP tokenizer ({len(tokenizer)} tokens for a {config.vocab_size}-token "
-            f"model; save the tokenizer beside the weights). {_clip_howto(where)}")
+        model, tokenizer = _clip_parts(Path(config_file), source, where, CLIPTextConfig, CLIPTextModelWithProjection,
+                                       tokenizer_cls)
+    except (TextEncoderUnavailable, FileContentError):
+        raise
+    except Exception as e:  # noqa: BLE001 - whatever the libraries raise on a damaged file: one line naming the folder
+        raise FileContentError(f"{where}: not a CLIP ViT-L/14 text-encoder folder ({reason(e)})") from e
     return CLIPTextEncoder(model, tokenizer, id=f"clip-vit-l-14:{source}")
 
 

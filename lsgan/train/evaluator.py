@@ -242,7 +242,8 @@ def _text_trainer(env: Env, ds: MotionDataset, val: tuple[list, list, list], cfg
     dev = env.device
     sampler = LengthBucketSampler(ds.lengths(), tcfg.batch_size, drop_last=True, seed=tcfg.seed)
     if len(sampler) == 0:
-        raise ValueError(f"{len(ds)} training windows make less than one batch of {tcfg.batch_size}; lower batch_size")
+        raise ValueError(f"{', '.join(map(str, paths))}: {len(ds)} training windows make less than one batch of "
+                         f"{tcfg.batch_size}; lower the recipe's evaluator.text.train.batch_size")
     enc = load_text_encoder(cfg.text_encoder, path=text_encoder_path, device=dev)
     net = EvaluatorNet(cfg, enc.dim).to(dev)
     ev = LearnedEvaluator(net, enc, ds.mean, ds.std, id="(training)", device=dev)
