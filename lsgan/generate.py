@@ -23,6 +23,7 @@ from lsgan.generation import (  # noqa: F401
     Generation,
     Motion,
     Request,
+    check_prompts,
     claim_generation,
     decode_batches,
     decoded_motion,
@@ -351,6 +352,7 @@ def generate_loaded(loaded: Loaded, requests: list[Request], *, num: int = 1, se
     the constrained motions then stand (a continuation's or in-between's: in the frame of the motions they join).
     """
     control_settings = control_settings or ControlSettings()
+    check_prompts(requests)
     longest = max((r.frames for r in requests), default=0)
     if longest > loaded.max_frames:
         raise ValueError(f"{loaded.vae}: this VAE decodes at most {loaded.max_frames} frames (its max_len); "

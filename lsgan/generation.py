@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -124,22 +125,63 @@ class Generation:
         return [self.runtime["dir"]] if "dir" in self.runtime else [self.gan, self.vae]
 
 
+PROMPT_CONTROLS = "\t\n\r"  # whitespace a pasted prompt may hold; the tokenizer reads it as spaces
+
+
+def text_problem(text: str) -> str | None:
+    """What makes ``text`` no prompt, in words, or None: empty, or holding a control character, a line or paragraph
+    separator, or a lone surrogate. The one check of a prompt's text, wherever it comes from (``--text``, a prompts
+    file, the library, the server)."""
+    bad = next((c for c in text if (unicodedata.category(c) in ("Cc", "Zl", "Zp") and c not in PROMPT_CONTROLS)
+                or unicodedata.category(c) == "Cs"), None)
+    if bad is not None:
+        kind = "a lone surrogate" if unicodedata.category(bad) == "Cs" else "a control character"
+        return f"text holds {kind} (U+{ord(bad):04X}); give printable text"
+    if not text.strip():
+        return 'text is empty: describe a motion, e.g. "a person walks forward"'
+    return None
+
+
+def check_prompts(requests: list[Request]) -> None:
+    """Refuse (ValueError) a request whose text is no prompt (:func:`text_problem`), naming it by its number: what
+    every generator runs first, torch's and the ONNX runtime's alike."""
+    for i, r in enumerate(requests, 1):
+        if r.text is not None and (problem := text_problem(r.text)):
+            raise ValueError(f"request {i} ({short_text(r.text)!r}): {problem}")
+
+
+def short_text(text: str, limit: int = 40) -> str:
+    """``text`` cut to ``limit`` characters, '...' marking a cut."""
+    return text[:limit] + ("..." if len(text) > limit else "")
+
+
 def read_prompts(path: str | os.PathLike, default_frames: int) -> list[Request]:
-    """One prompt per line, optionally ``prompt#frames``; blank lines and lines starting with '//' are skipped."""
+    """One prompt per line, optionally ``prompt#frames``; blank lines and lines starting with '//' are skipped. What
+    follows a line's last '#' must be a whole number of frames (a typo there is an error, not part of the prompt);
+    a prompt that holds a '#' itself ends with its frames (``track #5 dance#120``). A byte-order mark is dropped."""
     from lsgan.errors import reading
 
     out = []
     with reading(path, "a prompts file of UTF-8 text"):
-        text = Path(path).read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8-sig")
     for number, line in enumerate(text.split("\n"), 1):  # lines as an editor counts them, not str.splitlines's
         line = line.strip()
         if not line or line.startswith("//"):
             continue
-        m = re.fullmatch(r"(.*)#\s*(\d+)\s*", line)
+        m = re.fullmatch(r"(.*)#\s*([0-9]+)\s*", line)
+        if "#" in line and not m:
+            tail = line.rpartition("#")[2].strip()
+            raise ValueError(f"{path}: line {number}: {short_text(tail)!r} after '#' is "
+                             "not a number of frames (write prompt#frames, e.g. 'a person walks#120'; a prompt that "
+                             "holds a '#' ends with its frames)")
         if m and not MIN_FRAMES <= int(m.group(2)) <= 100_000:
             raise ValueError(f"{path}: line {number} asks for {int(m.group(2))} frames: a motion has {MIN_FRAMES} "
                              "to 100,000")
-        out.append(Request(text=m.group(1).strip(), frames=int(m.group(2))) if m else Request(text=line, frames=default_frames))
+        request = Request(text=m.group(1).strip(), frames=int(m.group(2))) if m else Request(text=line,
+                                                                                             frames=default_frames)
+        if problem := text_problem(request.text):
+            raise ValueError(f"{path}: line {number}: {problem}")
+        out.append(request)
     return out
 
 

@@ -27,6 +27,7 @@ import hashlib
 import json
 import os
 import secrets
+import signal
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -34,6 +35,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from lsgan.faults import fault_point
+from lsgan.interrupts import signals_held
 
 try:
     import fcntl
@@ -232,9 +234,10 @@ class _Registry:
             with os.fdopen(fd, "w", encoding="utf-8") as f:
                 f.write(text)
             os.replace(tmp, reg)
-        except OSError as e:  # name the registry (a full disk or a read-only folder says nothing of it)
-            e.filename = e.filename or str(reg)
-            tmp.unlink(missing_ok=True)  # this process's own, truncated under the lock
+        except BaseException as e:  # an interrupt too: the temporary is this process's own, made under the lock
+            if isinstance(e, OSError):  # name the registry (a full disk or a read-only folder says nothing of it)
+                e.filename = e.filename or str(reg)
+            tmp.unlink(missing_ok=True)
             raise
         self._saved = self._state()
 
@@ -434,10 +437,11 @@ def temp_file(path: str | os.PathLike) -> tuple[int, str]:
     path = Path(path)
     make_folder(path.parent)
     sweep_temps(path.parent)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
-    os.chmod(tmp, 0o666 & ~_umask())
-    with _registry(path.parent) as reg:
-        reg.entries[Path(tmp).name] = _temp_entry(Path(tmp))
+    with signals_held(signal.SIGINT, signal.SIGTERM):  # made and recorded, or neither: an interrupt waits for both
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
+        os.chmod(tmp, 0o666 & ~_umask())
+        with _registry(path.parent) as reg:
+            reg.entries[Path(tmp).name] = _temp_entry(Path(tmp))
     return fd, tmp
 
 
@@ -446,10 +450,11 @@ def temp_folder(target: str | os.PathLike) -> Path:
     target = Path(target)
     make_folder(target.parent)
     sweep_temps(target.parent)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.{os.getpid()}.", dir=target.parent))
-    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private (0700); the finished folder gets the usual mode
-    with _registry(target.parent) as reg:
-        reg.entries[tmp.name] = _temp_entry(tmp)
+    with signals_held(signal.SIGINT, signal.SIGTERM):  # made and recorded, or neither: an interrupt waits for both
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.{os.getpid()}.", dir=target.parent))
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private (0700); the finished folder gets the usual mode
+        with _registry(target.parent) as reg:
+            reg.entries[tmp.name] = _temp_entry(tmp)
     return tmp
 
 

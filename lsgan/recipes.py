@@ -118,6 +118,7 @@ BOUNDS: dict[str, Bounds] = {
     **dict.fromkeys(("num_layers", "num_heads"), Bounds(1, 1024)),
     "num_res_blocks": Bounds(0, 1024),
     "smooth_output": Bounds(0, 8),
+    "time_tokens": Bounds(0, 1024),
     # lengths in frames
     **dict.fromkeys(("min_frames", "max_frames", "max_len", "max_motion_length", "frames"), _FRAMES),
     "unit_length": Bounds(1, 1000),
@@ -142,10 +143,10 @@ def numbers(value: Any) -> list[float]:
     return [v for v in items if isinstance(v, (int, float)) and not isinstance(v, bool)]
 
 
-def build(cls: type[T], values: dict[str, Any] | None, where: str = "", options: frozenset[str] = frozenset()) -> T:
+def build(cls: type[T], values: dict[str, Any] | None, where: str = "") -> T:
     """A dataclass from a dict; unknown keys, values that do not fit a field's annotation and numbers outside the
-    setting's :data:`BOUNDS` are an error naming the section and the key, or the command's option (``--max-steps``)
-    for the keys in ``options``, whose values came from the command line rather than the recipe."""
+    setting's :data:`BOUNDS` are an error naming the section and the key (command-line overrides are ranged by
+    click from the same table, :func:`lsgan.cli.options.setting`)."""
     values = dict(values or {})
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(map(str, set(values) - names))
@@ -153,7 +154,7 @@ def build(cls: type[T], values: dict[str, Any] | None, where: str = "", options:
         raise ValueError(f"{where or cls.__name__}: unknown key(s) {_SHORT.repr(unknown)}; allowed: {sorted(names)}")
     hints = typing.get_type_hints(cls)
     for name, value in values.items():
-        key = f"option --{name.replace('_', '-')}" if name in options else f"recipe key {where or cls.__name__}.{name}"
+        key = f"recipe key {where or cls.__name__}.{name}"
         if not fits(value, hints[name]):
             raise ValueError(f"{key}: {_SHORT.repr(value)} is not {kind(hints[name])}{_exponent_hint(value)}")
         bounds = BOUNDS.get(name)
@@ -253,8 +254,8 @@ def configs(recipe: dict[str, Any], kind: str, model_cls: type[T], train_cls: ty
         where = f"{r.source}: {where}"
     given = lambda values: {k: v for k, v in (values or {}).items() if v is not None}  # noqa: E731
     models, trains = given(model_overrides), given(train_overrides)
-    model = build(model_cls, {**section(r, "model"), **models}, f"{where}.model", frozenset(models))
-    train = build(train_cls, {**section(r, "train"), **trains}, f"{where}.train", frozenset(trains))
+    model = build(model_cls, {**section(r, "model"), **models}, f"{where}.model")
+    train = build(train_cls, {**section(r, "train"), **trains}, f"{where}.train")
     against = getattr(train, "against", None)
     try:
         if against is not None:

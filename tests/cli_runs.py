@@ -43,7 +43,7 @@ def lsgan(*args, cwd: Path, env: dict | None = None, fault: str | None = None,
 
 
 # Environment variables that the libraries tests/zygote.py has imported read when they load: a command that sets
-# one differently from the zygote runs in a process of its own.
+# one differently from the first zygote gets a zygote of its own.
 _READ_AT_IMPORT = ("OMP_", "MKL_", "KMP_", "OPENBLAS", "PYTHON", "LD_", "TORCH", "CUDA", "HDF5", "H5PY")
 
 

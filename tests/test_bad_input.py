@@ -609,6 +609,22 @@ CASES = [
                                                          "--prompts", written(w / "prompts.txt", b"walk#40\nrun#3\n"),
                                                          "-o", w / "out"], 1,
          "prompts.txt: line 2 asks for 3 frames: a motion has 4 to 100,000"),
+    *[Case(f"generate-prompt-line-{name}", lambda w, p, line=line: [
+        "generate", "--gan", p / "gan", "--vae", p / "vae", "--prompts", written(w / "prompts.txt", b"walk#40\n" + line),
+        "-o", w / "out"], 1, phrase) for name, line, phrase in (
+          ("frames-not-a-number", b"walk#x\n", "prompts.txt: line 2: 'x' after '#' is not a number of frames"),
+          ("frames-negative", b"walk#-40\n", "prompts.txt: line 2: '-40' after '#' is not a number of frames"),
+          ("frames-fraction", b"walk # 40.5\n", "prompts.txt: line 2: '40.5' after '#' is not a number of frames"),
+          ("frames-other-digits", "walk#\u0663\u0660".encode(), "line 2: '\u0663\u0660' after '#'"),
+          ("frames-alone", b"#40\n", "prompts.txt: line 2: text is empty"),
+          ("escape", b"walk \x1b[2J fast\n", "prompts.txt: line 2: text holds a control character (U+001B)"),
+          ("line-separator", "walk#40\u2028run#60\n".encode(), "line 2: text holds a control character (U+2028)"),
+          ("long-tail", b"walk#" + b"x" * 5000, "line 2: 'xxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxx...' after '#'"))],
+    *[Case(f"generate-text-{name}", lambda w, p, text=text: generate_args(p, w / "out", "--text", text), 1, phrase)
+      for name, text, phrase in (("empty", "", "request 2 (''): text is empty"),
+                                 ("blank", "   ", "request 2 ('   '): text is empty"),
+                                 ("escape", "walk\x1b[2J", "request 2 ('walk\\x1b[2J'): text holds a control character "
+                                                           "(U+001B)"))],
     Case("generate-no-prompt", lambda w, p: ["generate", "--gan", p / "gan", "--vae", p / "vae", "-o", w / "out"], 2,
          "--text"),
     Case("generate-output-is-file", lambda w, p: generate_args(p, text_file(w)), 1, "not a folder"),

@@ -49,3 +49,26 @@ def test_strict_flag_fails_on_a_bad_clip(tmp_path):
     out = lsgan("preprocess", "--source", "joints", str(tmp_path / "j"), "-o", str(tmp_path / "x.h5"), "--strict")
     assert out.returncode == 1 and "nan.npy" in out.stderr and "NaN" in out.stderr
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_prompts_file_reads_as_an_editor_shows_it(tmp_path):
+    """A byte-order mark is dropped (its first line can be a comment), CRLF and blank lines are fine, a prompt may
+    hold a '#' when it ends with its frames, and every line keeps its own frame count."""
+    from lsgan.generation import read_prompts
+
+    path = tmp_path / "p.txt"
+    path.write_bytes("\ufeff// my prompts\r\nwalk forward#40\r\n\r\ndance to track #5 slowly#60\nwave\n".encode())
+    got = [(r.text, r.frames) for r in read_prompts(path, 80)]
+    assert got == [("walk forward", 40), ("dance to track #5 slowly", 60), ("wave", 80)]
+
+
+def test_lsgan_alone_prints_its_help_and_usage_errors_point_at_the_right_help():
+    """`lsgan` with nothing asks for the help (stdout, exit 0), not an error line holding it; a usage error's hint
+    names the program as users type it, also when run as `python -m lsgan.cli`."""
+    out = lsgan()
+    assert out.returncode == 0 and out.stdout.startswith("Usage: lsgan") and out.stderr == "", out.stderr
+    assert "train-vae" in out.stdout
+    for args, hint in ((["--bogus"], "(see 'lsgan --help')"), (["nosuch"], "(see 'lsgan --help')"),
+                       (["train-vae", "--bogus"], "(see 'lsgan train-vae --help')")):
+        out = lsgan(*args)
+        assert out.returncode == 2 and out.stderr.strip().endswith(hint), out.stderr

@@ -171,14 +171,14 @@ def test_epoch_batches_from_a_frame_table_resume_where_the_loader_would(two_shar
         _same_batch(a, b)
 
 
-@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e38, -2e4])
 def test_a_shard_with_non_finite_features_is_never_written(tmp_path, bad):
-    """What write_shard accepts, Shard reads: a clip holding NaN or infinity is refused by name, and no file (not
-    even a partial one) is left."""
+    """What write_shard accepts, Shard reads: a clip holding NaN, infinity or a value no motion has is refused by
+    name and frame, and no file (not even a partial one) is left."""
     good = np.zeros((8, 263), np.float32)
     broken = good.copy()
     broken[3, 100] = bad
-    with pytest.raises(ValueError, match="clip b: features hold NaN or infinite values"):
+    with pytest.raises(ValueError, match="clip b: frame 3: features hold NaN, infinite or values beyond ±10000"):
         write_shard(tmp_path / "s.h5", [ClipRecord("a", good, "train"), ClipRecord("b", broken, "train")],
                     source="test", action_names=[], provenance={})
     assert list(tmp_path.iterdir()) == []

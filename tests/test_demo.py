@@ -95,7 +95,7 @@ def test_demo_interrupted_continued_and_reused(tmp_path):
     proc.send_signal(signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 130, stderr[-3000:]
-    m = re.search(r"interrupted during \[(\d)/8\] ([a-z-]+)", stderr)
+    m = re.search(r"interrupted: during \[(\d)/8\] ([a-z-]+)", stderr)
     assert m, stderr[-3000:]
     assert f"lsgan demo -o {out}" in stderr and "again to continue" in stderr
     assert not _leftovers(out)

@@ -313,9 +313,11 @@ def test_int8_quantises_the_feed_forward_and_self_attention_products_only(runs: 
 
 
 def test_force_replaces_only_lsgans_files(runs: Path, tmp_path: Path) -> None:
-    """Exporting again with --force replaces the earlier export and keeps the user's own file beside it."""
+    """Exporting again with --force replaces the earlier export (the module's, hard-linked: replaced, never edited in
+    place) and keeps the user's own file beside it."""
     args = ["export-model", runs / "act-gan", "--vae", runs / "vae", "-o", tmp_path / "act", "--onnx"]
-    assert lsgan(*args, cwd=tmp_path).returncode == 0
+    before = snapshot(runs / "act-onnx")
+    linked_copy(runs / "act-onnx", tmp_path / "act")
     (tmp_path / "act" / "notes.txt").write_text("mine")
     again = lsgan(*args, cwd=tmp_path)
     assert again.returncode == 1 and "pass --force" in again.stderr
@@ -323,6 +325,7 @@ def test_force_replaces_only_lsgans_files(runs: Path, tmp_path: Path) -> None:
     assert again.returncode == 0, again.stderr
     assert (tmp_path / "act" / "notes.txt").read_text() == "mine"
     assert load(tmp_path / "act").generate([Request(action="walk", frames=40)]).motions[0].joints.shape == (40, 22, 3)
+    assert snapshot(runs / "act-onnx") == before
 
 
 def test_only_gans_export(tmp_path: Path) -> None:

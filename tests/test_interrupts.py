@@ -135,3 +135,37 @@ def test_without_the_guard_python_loses_it(tmp_path: Path) -> None:
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert out.stdout.startswith("finished"), out.stdout
     assert "Exception ignored" in out.stderr and "KeyboardInterrupt" in out.stderr
+
+
+HELD = textwrap.dedent("""
+    import os, signal
+    from lsgan.interrupts import InterruptGuard, signals_held
+
+    guard = InterruptGuard()
+    steps = []
+
+    def work():
+        with signals_held(signal.SIGINT, signal.SIGTERM):
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(100_000):
+                pass
+            steps.append("the held step finished")
+        steps.append("never")
+
+    try:
+        guard.call(work)
+    except KeyboardInterrupt as e:
+        steps.append(f"then {type(e).__name__} {int(e.signum)}")
+    guard.stop()
+    print("; ".join(steps))
+""")
+
+
+def test_signals_held_wait_for_the_step_and_then_interrupt_it(tmp_path: Path) -> None:
+    """A step run under signals_held (a temporary made and recorded) finishes whole; SIGTERM and SIGINT that came
+    meanwhile are raised right after it, and SIGTERM is what the interrupt reports."""
+    out = subprocess.run([sys.executable, "-c", HELD], capture_output=True, text=True, cwd=tmp_path, timeout=120,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == f"the held step finished; then Interrupted {int(signal.SIGTERM)}", out.stdout

@@ -12,7 +12,7 @@ import pytest
 
 from lsgan.data.clip import Caption, mirror_caption, swap_left_right
 from lsgan.data.features import joints_to_features, recover_from_ric
-from lsgan.data.preprocess import PreprocessError, hash_split, preprocess
+from lsgan.data.preprocess import PreprocessError, Skip, format_skips, hash_split, preprocess
 from lsgan.data.shards import FORMAT, Shard, summarize
 from lsgan.data.sources.humanml3d import HumanML3DSource
 from lsgan.data.sources.joints import JointsSource
@@ -280,3 +280,14 @@ def test_featurising_our_recovered_joints_is_stable(hml_fixtures):
     joints = np.load(hml_fixtures / "new_joints" / "012314.npy")
     feats = joints_to_features(joints)
     assert feats.shape == (169, 263) and np.isfinite(feats).all()
+
+
+def test_the_skip_summary_names_only_files_that_exist(tmp_path: Path) -> None:
+    """A HumanML3D item is an id inside a path: the summary keeps the path whole (it named
+    'new_joint_vecs/.npy' once); a BVH item is the path itself and leads its reason, which drops it."""
+    vecs = tmp_path / "new_joint_vecs"
+    hml = [Skip(i, f"{vecs / (i + '.npy')}: listed in the split files but missing on disk") for i in ("000001", "000002")]
+    bvh = [Skip(str(tmp_path / f"{n}.bvh"), f"{tmp_path / (n + '.bvh')}: no HIERARCHY") for n in ("a", "b")]
+    text = format_skips(hml + bvh)
+    assert f"{vecs / '000001.npy'}: listed in the split files" in text and "/.npy" not in text, text
+    assert "2 files: no HIERARCHY (e.g. a.bvh, b.bvh)" in text, text

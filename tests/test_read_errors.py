@@ -185,6 +185,33 @@ def test_a_bad_shard_is_one_line_naming_it(run: Path, tmp_path: Path, case: str)
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize("damage", ["all-nan", "one-inf", "one-huge"])
+def test_features_changed_to_non_finite_values_are_named(run: Path, tmp_path: Path, damage: str) -> None:
+    """Features overwritten in place: every value NaN (a dataset that now compresses 1000x, which must not read as
+    a decompression bomb) or one infinity in clip 3. Opening works; reading the frames names the clip and frame."""
+    path = tmp_path / "bad.h5"
+    shutil.copy(run / "synth.h5", path)
+    with h5py.File(path, "r+") as f:
+        offset = int(f["clips/offset"][3])
+        if damage == "all-nan":
+            f["features"][...] = np.nan
+        else:
+            f["features"][offset + 2, 7] = np.inf if damage == "one-inf" else 1e38
+    clip, frame = (0, 0) if damage == "all-nan" else (3, 2)
+    phrase = f"(index {clip}), frame {frame}: features hold NaN, infinite or values beyond ±10000"
+    before = snapshot(tmp_path)
+    with Shard(path) as shard:
+        for read in (shard.all_features, lambda: shard.features(clip)):
+            with pytest.raises(DataFileError, match=re.escape(phrase)):
+                read()
+        if damage != "all-nan":
+            assert np.isfinite(shard.features(clip + 1)).all() and np.isfinite(shard.features(clip, 3)).all()
+    line = one_error_line(lsgan("train-vae", "--data", "bad.h5", "--recipe", run / "tiny0.yaml", "--out", "vae",
+                                cwd=tmp_path))
+    assert line.startswith("error: bad.h5: clip ") and phrase in line
+    assert snapshot(tmp_path) == before
+
+
 def test_a_directory_or_missing_file_as_shard(tmp_path: Path) -> None:
     with pytest.raises(DataFileError, match="is a directory, not an HDF5 file$"):
         Shard(tmp_path)

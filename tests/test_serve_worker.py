@@ -162,3 +162,23 @@ def test_requests_without_constraints_go_before_constrained_ones(serve_models: P
     finally:
         batcher.close()
         engine.close()
+
+
+@pytest.mark.parametrize("signals, code", [((signal.SIGINT,), 130), ((signal.SIGTERM, signal.SIGINT), 130),
+                                           ((signal.SIGINT, signal.SIGTERM), 130)],
+                         ids=["ctrl-c", "term-then-int", "int-then-term"])
+def test_ctrl_c_stops_the_server_in_one_line(serve_models: Path, signals, code: int) -> None:
+    """Ctrl-C, alone or 50 ms from a SIGTERM, drains the server like SIGTERM and exits 130 with one 'interrupted'
+    line: the signals uvicorn raises again after draining are recorded, never raised inside it (a traceback)."""
+    s = Server("--gan", "gan", "--vae", "vae", "--workers", 1, cwd=serve_models)
+    try:
+        for i, sig in enumerate(signals):
+            time.sleep(0.05 * i)
+            os.kill(s.proc.pid, sig)
+        assert s.proc.wait(30) == code, s.stderr
+        s._reader.join(5)
+        assert "Traceback" not in s.stderr and "ERROR" not in s.stderr, s.stderr
+        tail = s.stderr.strip().splitlines()
+        assert tail[-2:] == ["lsgan serve: stopped", "interrupted"], s.stderr
+    finally:
+        s.stop()

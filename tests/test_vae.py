@@ -6,6 +6,8 @@ from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lsgan import outputs
 from lsgan.outputs import OutputError
@@ -81,8 +83,9 @@ def _batch(lengths: list[int], T: int | None = None, seed: int = 0) -> tuple[tor
     return x, mask
 
 
-@pytest.mark.parametrize("config", [TINY, replace(TINY, position_embedding="sine", latent_dim=16, norm_first=False)],
-                         ids=["learned", "sine-post-norm-projected"])
+@pytest.mark.parametrize("config", [TINY, replace(TINY, position_embedding="sine", latent_dim=16, norm_first=False),
+                                    replace(TINY, time_tokens=4), replace(TINY, time_tokens=2, latent_dim=64)],
+                         ids=["learned", "sine-post-norm-projected", "time-tokens-projected", "time-tokens"])
 def test_shapes_and_masks(config):
     torch.manual_seed(0)
     vae = MotionVAE(config)
@@ -131,6 +134,37 @@ def test_inference_decoder_computes_the_one_token_cross_attention_once(norm_firs
     torch.manual_seed(1)
     b = vae.final(vae.decoder(queries, memory, tgt_key_padding_mask=~mask)).masked_fill(~mask[..., None], 0)
     torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+@settings(max_examples=60, deadline=None)
+@given(lengths=st.lists(st.integers(1, 90), min_size=1, max_size=5), k=st.integers(1, 12))
+def test_time_token_weights_cover_each_real_frame_once(lengths, k):
+    """Each real frame lies in exactly one token's segment and its interpolation weights sum to 1, padding in none;
+    segments run in time order and split a motion evenly (sizes differ by one frame at most)."""
+    from lsgan.models.vae import interpolation_weights, segment_weights
+
+    mask = torch.arange(max(lengths) + 3)[None] < torch.tensor(lengths)[:, None]
+    seg, interp = segment_weights(mask, k), interpolation_weights(mask, k)
+    assert torch.equal(seg.sum(-1), mask.float()) and (interp >= 0).all()
+    torch.testing.assert_close(interp.sum(-1), mask.float(), rtol=0, atol=1e-6)
+    for b, n in enumerate(lengths):
+        owner = seg[b, :n].argmax(-1)
+        assert (owner.diff() >= 0).all()
+        sizes = seg[b, :n].sum(0)[: min(k, n)]
+        assert n < k or sizes.max() - sizes.min() <= 1
+
+
+def test_a_run_saved_before_a_model_field_existed_resumes():
+    """A checkpoint's model config that lacks a field added since is that field at its default (what the model did
+    before it existed); any other difference still refuses the resume."""
+    from lsgan.train.loop import _with_defaults
+
+    vae = MotionVAE(TINY)
+    now = asdict(TINY)
+    old = {k: v for k, v in now.items() if k != "time_tokens"}
+    assert _with_defaults(old, vae) == now
+    assert _with_defaults({**old, "d_model": 64}, vae) != now
+    assert _with_defaults({**now, "time_tokens": 4}, vae) != now
+
 
 @pytest.mark.parametrize("layers", [0, 2, 4, 8])
 def test_even_layer_counts_are_rejected(layers):

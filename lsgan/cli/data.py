@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, Out, fail, setting, stopped
+from lsgan.cli.options import In, Out, fail, setting, stopped_keeping
 
 
 SOURCES = ("synthetic", "bvh", "humanml3d", "joints", "amass", "humanact12")
@@ -114,7 +114,7 @@ def preprocess(path, source_name, output, fmt, preset, joint_map, scale, fps, te
                      resume=resume, strict=strict, force=force, report=report, on_progress=progress)
     except KeyboardInterrupt:
         bar.close()
-        stopped(f"finished chunks are kept in {output}.parts/; run the same command with --resume to continue")
+        stopped_keeping(f"{output}.parts", "finished chunks")
     except (PreprocessError, ClipError, ValueError) as e:
         bar.close()
         fail(str(e))

@@ -7,18 +7,26 @@ import sys
 import click
 
 from lsgan import __version__
-from lsgan.cli.options import INTERRUPTED, LsganCommand, close_progress_bars, say_error
+from lsgan.cli.options import LsganCommand, say_error, say_interrupted
 from lsgan.cli.startup import startup_guard
+from lsgan.cli.streams import named_streams
 from lsgan.errors import debugging, describe
 from lsgan.interrupts import InterruptGuard
+
+
+class CommandInterrupted(Exception):
+    """A command's KeyboardInterrupt on its way out of click, which would print a blank line for it (its ``__cause__``
+    is the interrupt)."""
 
 
 class LsganGroup(click.Group):
     """Runs a command and turns every failure into one ``error: FILE: problem`` line and a non-zero exit.
 
-    Usage errors exit 2, other errors 1, Ctrl-C 130; tracebacks only with ``--debug`` or ``LSGAN_DEBUG=1``.
-    A Ctrl-C is never lost (:class:`lsgan.interrupts.InterruptGuard`): one that Python swallowed in a finaliser
-    is raised again, and a run that received one exits 130 whatever became of the exception.
+    Usage errors exit 2, other errors 1, Ctrl-C 130, SIGTERM 143; tracebacks only with ``--debug`` or
+    ``LSGAN_DEBUG=1``. A Ctrl-C is never lost (:class:`lsgan.interrupts.InterruptGuard`): one that Python swallowed
+    in a finaliser is raised again, and a run that received one exits 130 whatever became of the exception. A
+    write to stdout that fails (a full disk, a closed pipe or descriptor) is an error naming stdout
+    (:mod:`lsgan.cli.streams`), also when it fails only at the last flush.
     """
 
     command_class = LsganCommand
@@ -28,33 +36,49 @@ class LsganGroup(click.Group):
 
         guard = startup_guard.pop() if startup_guard else InterruptGuard()
         try:
-            with claims():  # what the command claims to write, noted for other lsgan processes while it runs
+            with named_streams(), claims():  # claims: what the command writes, noted for other lsgan processes
                 code = self._run(guard, *args, **kwargs)
+                if guard.stop() and code not in (130, 143):
+                    code = say_interrupted(signum=guard.signum, came_at=guard.first_at)
         except BaseException:  # --debug: the traceback, with the caller's handler back
             guard.stop()
             raise
-        if guard.stop() and code != INTERRUPTED:
-            close_progress_bars()
-            click.echo("\ninterrupted", err=True)
-            code = INTERRUPTED
         sys.exit(code)
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as e:
+            raise CommandInterrupted() from e
 
     def _run(self, guard, *args, **kwargs) -> int:
         """The command under ``guard``; its exit code, every failure reported as one line."""
         kwargs["standalone_mode"] = False
+
+        def command() -> object:
+            result = super(LsganGroup, self).main(*args, **kwargs)
+            sys.stdout.flush()  # a failure still held in its buffer is this command's
+            return result
+
         try:
-            code = guard.call(super().main, *args, **kwargs)
+            code = guard.call(command)
         except SystemExit as e:  # a command's own fail or stopped
             code = e.code
         except click.exceptions.Exit as e:
             code = e.exit_code
+        except click.exceptions.NoArgsIsHelpError as e:  # `lsgan` alone asks for the help: no error to report
+            click.echo(e.ctx.get_help())
+            code = 0
         except click.ClickException as e:
-            hint = f" (see 'lsgan {e.ctx.info_name} --help')" if getattr(e, "ctx", None) is not None else ""
+            ctx, names = getattr(e, "ctx", None), []
+            while ctx is not None and ctx.parent is not None:  # the command's names below the program's
+                names.insert(0, ctx.info_name)
+                ctx = ctx.parent
+            hint = "" if ctx is None else f" (see '{' '.join(['lsgan', *names])} --help')"
             say_error(f"{e.format_message()}{hint}")
             code = e.exit_code
-        except (click.Abort, KeyboardInterrupt):
-            click.echo("\ninterrupted", err=True)
-            code = INTERRUPTED
+        except (click.Abort, KeyboardInterrupt, CommandInterrupted):
+            code = say_interrupted()
         except Exception as e:  # noqa: BLE001 - the promise: one line, no traceback unless asked
             if debugging():
                 raise
@@ -86,7 +110,7 @@ def main(debug: bool, threads: int | None) -> None:
       lsgan generate --gan runs/gan --vae runs/vae --text "a person walks forward" -o out/
     \b
     Errors are one line on stderr (`error: FILE: problem`) with exit code 1 (2 for a wrong option, 130 after
-    Ctrl-C); `lsgan --debug COMMAND` (or LSGAN_DEBUG=1) shows the traceback. CPU threads: lsgan picks them per
+    Ctrl-C, 143 after SIGTERM); `lsgan --debug COMMAND` (or LSGAN_DEBUG=1) shows the traceback. CPU threads: lsgan picks them per
     job and uses fewer while other processes keep cores busy; `lsgan --threads N COMMAND` fixes them. No command replaces a file it
     did not write: an existing output needs --force, which replaces only lsgan's own files.
     """

@@ -11,9 +11,6 @@ import click
 from lsgan.errors import debugging, describe
 
 
-INTERRUPTED = 130  # the shell's code for a process stopped by Ctrl-C (128 + SIGINT)
-
-
 class In(click.Path):
     """A path the command reads. Every path option is an :class:`In` or an :class:`Out` (tests/test_outputs.py
     checks it), so that :class:`LsganCommand` can refuse an output that is, holds or lies inside an input."""
@@ -137,10 +134,43 @@ def close_progress_bars() -> None:
         bar.close()
 
 
+def say_interrupted(hint: str = "", signum: int | None = None, came_at: float | None = None) -> int:
+    """After Ctrl-C or SIGTERM: one line, ``interrupted`` or ``terminated`` and what is kept and how to go on; the
+    exit code (128 + the signal). The signal and its time come from the :class:`lsgan.interrupts.Interrupted` being
+    handled, or are given. Progress bars close first; the line starts a line of its own with no blank line before
+    it: after a line break only if the last line printed is unfinished, or, for Ctrl-C on a terminal (which echoed
+    ``^C`` where its cursor was), unless what was printed since the signal (a closed bar) ended a line."""
+    import signal
+
+    from lsgan.interrupts import Interrupted
+
+    error = sys.exc_info()[1]
+    while error is not None and not isinstance(error, Interrupted):
+        error = error.__cause__ or error.__context__
+    signum = signum or getattr(error, "signum", signal.SIGINT)
+    came_at = getattr(error, "came_at", 0.0) if came_at is None else came_at
+    close_progress_bars()
+    err = sys.stderr
+    if signum == signal.SIGINT and getattr(err, "isatty", lambda: False)():
+        fresh = 0.0 < came_at < getattr(err, "line_ended", 0.0)
+    else:
+        fresh = getattr(err, "at_line_start", False)
+    word = "terminated" if signum == signal.SIGTERM else "interrupted"
+    click.echo(("" if fresh else "\n") + word + (f": {hint}" if hint else ""), err=True)
+    return 128 + signum
+
+
 def stopped(hint: str) -> None:
-    """Ctrl-C: say what is kept and how to go on, and exit 130."""
-    click.echo(f"\ninterrupted: {hint}", err=True)
-    sys.exit(INTERRUPTED)
+    """Ctrl-C or SIGTERM: say what is kept and how to go on, and exit 130 (143)."""
+    sys.exit(say_interrupted(hint))
+
+
+def stopped_keeping(kept: str | os.PathLike, what: str) -> None:
+    """:func:`stopped` for work that resumes from ``kept`` (a run's ``last/`` checkpoint, preprocess's parts): the
+    hint says so only when it exists, else that nothing was kept yet."""
+    if os.path.exists(kept):
+        stopped(f"{what} so far are kept in {kept}; run the same command with --resume to continue")
+    stopped(f"no {what} were kept yet; run the same command again")
 
 
 def plainly(error: Exception) -> str:

@@ -22,7 +22,7 @@ Examples:
   curl -s localhost:8000/v1/generate -H 'Content-Type: application/json' -d '{"text": "a person waves", "seed": 1}'
 \b
 The API (endpoints, limits, errors): docs/api.md, and /docs on the running server. SIGTERM finishes the requests
-in flight and exits 0.
+in flight and exits 0 (Ctrl-C: 130); a second signal does not cut that short.
 """)
 @click.option("--gan", type=In(exists=True), help="GAN checkpoint (run or checkpoint folder); with --vae.")
 @click.option("--vae", type=In(exists=True), help="The VAE whose latents the GAN learned.")

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 
 import click
 
 from lsgan.cli.group import main
-from lsgan.cli.options import In, MaybeIn, Out, fail, load_recipe_or_fail, plainly, setting, stopped
+from lsgan.cli.options import In, MaybeIn, Out, fail, load_recipe_or_fail, plainly, setting, say_interrupted, stopped_keeping
 
 
 @main.command(epilog="""\b
@@ -48,12 +49,10 @@ def demo(output, scale, fresh, threads, device) -> None:
     try:
         result = run_demo(output, scale=scale, fresh=fresh, device=device, threads=threads)
     except DemoInterrupted as e:
-        click.echo(f"\ninterrupted during [{e.index}/8] {e.stage}: finished stages (and the last checkpoint of a "
-                   f"training) are kept in {output}; run `lsgan demo -o {output}` again to continue.", err=True)
-        sys.exit(130)
+        sys.exit(say_interrupted(f"during [{e.index}/8] {e.stage}: finished stages (and the last checkpoint of a "
+                                 f"training) are kept in {output}; run `lsgan demo -o {output}` again to continue."))
     except KeyboardInterrupt:
-        click.echo(f"\ninterrupted; run `lsgan demo -o {output}` again to continue.", err=True)
-        sys.exit(130)
+        sys.exit(say_interrupted(f"run `lsgan demo -o {output}` again to continue."))
     except (ValueError, FileNotFoundError, TrainingDiverged) as e:
         fail(str(e))
     click.echo(result.report())
@@ -102,7 +101,7 @@ def train_on_cache(kind: str, model_config, train_config, model_options: dict, t
         model, train = configs(full, kind, model_config, train_config, model_options, train_options)
         result = run(model, train, expect)
     except KeyboardInterrupt:
-        stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
+        stopped_keeping(os.path.join(out, "last"), "checkpoints")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         fail(str(e))
     click.echo(json.dumps(result, default=str), err=True)
@@ -137,7 +136,7 @@ def train_vae_cmd(data, recipe, out, max_steps, batch_size, seed, device, resume
                                train_overrides={"max_steps": max_steps, "batch_size": batch_size, "seed": seed})
         result = train_vae(list(data), out, model=model, train=train, device=device, resume=resume, force=force)
     except KeyboardInterrupt:
-        stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
+        stopped_keeping(os.path.join(out, "last"), "checkpoints")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         fail(str(e))
     click.echo(json.dumps(result), err=True)
@@ -250,7 +249,7 @@ def train_evaluator_cmd(data, out, recipe, kind, max_steps, batch_size, seed, te
                                    overrides={"max_steps": max_steps, "batch_size": batch_size, "seed": seed},
                                    device=device, resume=resume, force=force, text_encoder_path=text_encoder_path)
     except KeyboardInterrupt:
-        stopped(f"checkpoints so far are kept in {out}; run the same command with --resume to continue")
+        stopped_keeping(os.path.join(out, "last"), "checkpoints")
     except (TrainingDiverged, ValueError, FileExistsError, FileNotFoundError) as e:
         fail(str(e))
     except Exception as e:  # noqa: BLE001 - e.g. a text encoder whose weights are absent: say so plainly

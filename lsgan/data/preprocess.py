@@ -16,6 +16,7 @@ import sys
 from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -27,7 +28,7 @@ from lsgan.data.clip import Caption, ClipError, RawClip, mirror_caption, swap_le
 from lsgan.data.features import joints_to_features
 from lsgan.data.plausibility import clip_checks, summarise
 from lsgan.data.plausibility import format_summary as format_plausibility
-from lsgan.data.shards import FORMAT_VERSION, ClipRecord, write_shard
+from lsgan.data.shards import FEATURE_LIMIT, FORMAT_VERSION, ClipRecord, unusable_rows, write_shard
 from lsgan.data.skeleton import FEATURE_DIM, FPS, NUM_JOINTS, mirror_joints
 from lsgan.faults import fault_point
 from lsgan.interrupts import sigint_held
@@ -99,8 +100,9 @@ def _check_features(clip: RawClip, min_frames: int) -> np.ndarray:
     x = np.asarray(clip.features)
     if x.ndim != 2 or x.shape[1] != FEATURE_DIM:
         raise ClipError(f"features of shape {x.shape}, expected (T, {FEATURE_DIM})")
-    if not np.isfinite(x).all():
-        raise ClipError("NaN or infinite feature values")
+    if len(bad := unusable_rows(x)):
+        raise ClipError(f"feature values that are NaN, infinite or beyond ±{FEATURE_LIMIT:g} in {len(bad)} of "
+                        f"{len(x)} frames (first: frame {bad[0]})")
     if len(x) + 1 < max(min_frames, 2):
         raise ClipError(f"too short: {len(x)} feature frames (minimum {max(min_frames, 2) - 1})")
     return x.astype(np.float32, copy=False)
@@ -147,6 +149,7 @@ def process_chunk(source, items: list[str], mirror: bool | None, min_frames: int
 
     ``inputs`` maps every file read to its SHA-256, hashed just before it was read.
     """
+    fault_point("preprocess.worker")  # tests/test_faults.py: a worker that dies (each counts its own visits)
     records: list[dict] = []
     skips: list[dict] = []
     inputs: dict[str, str | None] = {}
@@ -198,9 +201,10 @@ def _featurise(pending: list[RawClip], records: list[dict], skips: list[dict]) -
             except Exception as e:
                 feats.append(e)
     for clip, x in zip(pending, feats):
-        if isinstance(x, Exception) or not np.isfinite(x).all():
+        if isinstance(x, Exception) or len(unusable_rows(x)):
             why = f"feature computation failed: {x}" if isinstance(x, Exception) else (
-                "features are not finite (degenerate skeleton: coincident joints or zero-length bones?)")
+                f"features are not finite or beyond ±{FEATURE_LIMIT:g} (degenerate skeleton: coincident joints or "
+                "zero-length bones? positions in other units than metres?)")
             skips.append({"item": clip.source_file, "clip": clip.name, "reason": why})
             continue
         records.append(_record(clip, x))
@@ -326,8 +330,11 @@ def _run_chunks(source, plan: _Plan, paths: list[Path], todo: list[int], *, mirr
                 futures = {k: pool.submit(process_chunk, source, plan.chunks[k], mirror, min_frames) for k in todo}
             for k in todo:
                 finished(k, futures[k].result())
-        except BaseException:  # the workers end their current chunk and exit; the rest are never started
+        except BaseException as e:  # the workers end their current chunk and exit; the rest are never started
             pool.shutdown(wait=False, cancel_futures=True)
+            if isinstance(e, BrokenProcessPool):  # says neither which run nor what to do
+                raise PreprocessError(f"{paths[0].parent}: a worker process died (killed, or out of memory?); the "
+                                      "finished chunks are kept there: run the same command with --resume") from None
             raise
 
 
@@ -496,11 +503,12 @@ def _reason_kind(skip: Skip) -> str:
 
 
 def group_skips(skipped: list[Skip]) -> list[tuple[str, list[Skip]]]:
-    """Skips grouped by kind of reason, largest group first; each group is named by its first reason."""
+    """Skips grouped by kind of reason, largest group first; each group is named by its first reason, less a leading
+    ``ITEM:`` (the summary names the items). An item named inside a path stays: the path is a real file's."""
     groups: dict[str, list[Skip]] = {}
     for s in skipped:
         groups.setdefault(_reason_kind(s), []).append(s)
-    return [(g[0].reason.replace(g[0].item, "").strip(": ") or g[0].reason, g)
+    return [(g[0].reason.removeprefix(f"{g[0].item}:").strip() or g[0].reason, g)
             for g in sorted(groups.values(), key=len, reverse=True)]
 
 

@@ -81,6 +81,22 @@ compress 1.2-2x (motion features at gzip level 1 with shuffle: 1.57x on syntheti
 noise does not compress); 64x leaves room for long still takes and refuses chunks of zeros that deflate would
 inflate 1032x (a 6 MB file asking for 6 GB of memory)."""
 
+FEATURE_LIMIT = 1e4
+"""The largest magnitude a shard's feature may have: positions and velocities in metres (per frame), rotations and
+contacts within [-1, 1]; no human motion comes near, and float16 training would overflow far above it."""
+UNUSABLE = f"NaN, infinite or values beyond ±{FEATURE_LIMIT:g}"
+
+
+def unusable_rows(x: np.ndarray) -> np.ndarray:
+    """The rows of features (T, 263) holding a value that is not finite or beyond :data:`FEATURE_LIMIT`."""
+    return np.flatnonzero(~(np.abs(x) <= FEATURE_LIMIT).all(axis=1))  # NaN compares false
+
+
+CONTENT_FLOOR = 512 << 20
+"""Up to this many declared bytes (about 7 hours of motion) a compressed dataset may inflate as far as its filters
+can: half a GiB puts no machine at risk, and a file damaged into constant values (its features overwritten with NaN)
+reaches the check that says so."""
+
 FILTER_MAX_RATIO = {h5py.h5z.FILTER_DEFLATE: DEFLATE_MAX_RATIO, h5py.h5z.FILTER_LZF: 88, h5py.h5z.FILTER_SHUFFLE: 1,
                     h5py.h5z.FILTER_FLETCHER32: 1}
 """The most each HDF5 filter can shrink data: deflate (gzip) 1032x, its format's limit; LZF 88x (a back reference
@@ -230,7 +246,8 @@ def _chunks_problem(ds: h5py.Dataset, declared: int) -> str | None:
     plist = ds.id.get_create_plist()
     filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]  # (code, flags, options, name)
     stored_bytes = ds.id.get_storage_size()
-    ratio = min(math.prod(FILTER_MAX_RATIO.get(f[0], 1) for f in filters), CONTENT_MAX_RATIO) if filters else 1
+    ratio = math.prod(FILTER_MAX_RATIO.get(f[0], 1) for f in filters) if filters else 1
+    ratio = ratio if declared <= CONTENT_FLOOR else min(ratio, CONTENT_MAX_RATIO)
     capacity = stored_bytes * ratio
     if declared > capacity:
         names = ", ".join(f[3].decode("ascii", "replace") or str(f[0]) for f in filters) or "none"
@@ -420,8 +437,8 @@ class _ShardWriter:
         x = np.asarray(clip.features, dtype=np.float32)
         if x.ndim != 2 or x.shape[1] != FEATURE_DIM:
             raise ValueError(f"clip {clip.name}: features of shape {x.shape}, expected (T, {FEATURE_DIM})")
-        if not np.isfinite(x).all():  # a shard lsgan writes is one it reads: no NaN or infinity in it
-            raise ValueError(f"clip {clip.name}: features hold NaN or infinite values")
+        if len(bad := unusable_rows(x)):  # a shard lsgan writes is one it reads
+            raise ValueError(f"clip {clip.name}: frame {bad[0]}: features hold {UNUSABLE}")
         i, cols = len(self.cols["name"]), self.cols
         for key, value in (("name", clip.name), ("offset", self.rows), ("length", len(x)), ("split", clip.split),
                            ("action", self.action_index[clip.action] if clip.action is not None else -1),
@@ -697,11 +714,27 @@ class Shard:
         if isinstance(self._features, np.ndarray):
             return self._features
         try:
-            return self._features[()]
+            x = self._features[()]
         except (OSError, RuntimeError):
             for i in range(len(self)):
                 self.features(i)
             raise
+        return self._finite(x, 0)
+
+    def _finite(self, x: np.ndarray, row: int) -> np.ndarray:
+        """``x``, the feature rows from ``row`` on, if every value is usable (:func:`unusable_rows`; lsgan writes none
+        that is not), else a DataFileError naming the first clip and frame that holds one. A slice at a time."""
+        for a in range(0, len(x), 1 << 16):
+            rows = unusable_rows(x[a : a + (1 << 16)])
+            if len(rows):
+                bad = row + a + int(rows[0])
+                i = int(np.searchsorted(self.offsets, bad, side="right")) - 1
+                i = i if 0 <= i < len(self) and self.offsets[i] + self.lengths[i] > bad else None
+                where = f"clip {self.names[i]} (index {i}), frame {bad - int(self.offsets[i])}" if i is not None \
+                    else f"row {bad}"
+                raise DataFileError(f"{self.path}: {where}: features hold {UNUSABLE} (lsgan writes none; the file "
+                                    "was changed after it was written)")
+        return x
 
     @property
     def provenance(self) -> dict:
@@ -725,7 +758,7 @@ class Shard:
         except (OSError, RuntimeError) as e:
             damage = f"corrupt compressed data: {_reason(e)}" if self._compressed else _reason(e)
             raise DataFileError(f"{self.path}: clip {self.names[i]} (index {i}): unreadable features ({damage})") from None
-        return np.asarray(x, dtype=np.float32)
+        return self._finite(np.asarray(x, dtype=np.float32), o + start)
 
     def captions(self, i: int) -> list[Caption]:
         return list(self._captions[i])

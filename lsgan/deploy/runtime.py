@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from lsgan.deploy.manifest import GRAPHS, read_manifest, variant_files, verify
-from lsgan.generation import (CPU_DECODE_FRAMES, Generation, Request, decode_batches, decoded_motion, draw_noise,
-                              place_measured)
+from lsgan.generation import (CPU_DECODE_FRAMES, Generation, Request, check_prompts, decode_batches, decoded_motion,
+                              draw_noise, place_measured)
 from lsgan.textcache import PromptCache
 from lsgan.threads import FreeCores, fixed_threads, usable_cpus
 
@@ -192,6 +192,7 @@ class OnnxMotionModel:
         gradients: docs/control.md); ``placement`` then moves the motions (a continuation's)."""
         from lsgan.constraints import check_reach, meet
 
+        check_prompts(requests)
         n = len(requests) * num
         if n == 0:
             raise ValueError("nothing to generate: no requests (or num=0)")

@@ -1,5 +1,10 @@
 """MLD's skip-transformer motion VAE: a motion (T,263) <-> one Gaussian latent z (Z,).
 
+With ``time_tokens: k`` (not MLD's) z is k vectors of Z/k, each summarising one k-th of the motion's frames (the mean
+of the encoder's outputs there) and entering the decoder's queries of those frames (linearly between neighbouring
+tokens' centres) as well as its memory: the latent varies over the motion's time, so a decoder can place a gait's
+steps, which the one-vector latent's decoder averages away (docs/results.md). The GAN still generates one Z vector.
+
 Encoder: Linear(263->d), two learned distribution tokens prepended, positional encoding, a skip
 transformer over [mu_token, logvar_token, frames] with padded frames masked out; the outputs at the two
 tokens are mu and log-variance. Decoder: T query tokens (zeros + positional encoding) self-attend (padded
@@ -37,6 +42,7 @@ from lsgan.models.dropout import DecoderLayer, EncoderLayer
 class VAEConfig:
     nfeats: int = 263
     latent_dim: int = 256  # Z: what the GAN generates
+    time_tokens: int = 0  # 0: MLD's one latent vector; k: z is k vectors of latent_dim/k, each for 1/k of the motion
     d_model: int = 128
     num_layers: int = 3  # per encoder and per decoder; odd (input blocks + middle + output blocks)
     num_heads: int = 4
@@ -53,6 +59,10 @@ class VAEConfig:
     def __post_init__(self) -> None:
         if self.num_layers < 1 or self.num_layers % 2 == 0:
             raise ValueError(f"num_layers must be odd (input blocks, a middle block, output blocks), got {self.num_layers}")
+        if type(self.time_tokens) is not int or self.time_tokens < 0 or \
+                (self.time_tokens and self.latent_dim % self.time_tokens):
+            raise ValueError(f"time_tokens must be 0 or a whole divisor of latent_dim ({self.latent_dim}), "
+                             f"got {self.time_tokens!r}")
         if self.d_model % self.num_heads:
             raise ValueError(f"d_model ({self.d_model}) must be divisible by num_heads ({self.num_heads})")
         if self.position_embedding not in ("learned", "sine"):
@@ -196,10 +206,11 @@ class MotionVAE(nn.Module):
                      activation=c.activation, batch_first=True, norm_first=c.norm_first)
         self.encoder = SkipTransformer(lambda: EncoderLayer(**layer), c.num_layers, d)
         self.decoder = SkipTransformer(lambda: DecoderLayer(**layer), c.num_layers, d)
-        same = c.latent_dim == d
-        self.to_mu = nn.Identity() if same else nn.Linear(d, c.latent_dim)
-        self.to_logvar = nn.Identity() if same else nn.Linear(d, c.latent_dim)
-        self.from_latent = nn.Identity() if same else nn.Linear(c.latent_dim, d)
+        w = c.latent_dim // max(c.time_tokens, 1)  # one token's width
+        same = w == d
+        self.to_mu = nn.Identity() if same else nn.Linear(d, w)
+        self.to_logvar = nn.Identity() if same else nn.Linear(d, w)
+        self.from_latent = nn.Identity() if same else nn.Linear(w, d)
         self.final = nn.Linear(d, c.nfeats)
         use_head = c.smooth_output or c.rigid_output
         self.head = DecoderHead(c.nfeats, c.smooth_output, c.rigid_output) if use_head else None
@@ -216,14 +227,22 @@ class MotionVAE(nn.Module):
         h = self.enc_pos(h)
         pad = torch.cat([mask.new_zeros(B, 2), ~mask], dim=1)  # (B,2+T) True = ignore
         h = self.encoder(h, src_key_padding_mask=pad)  # (B,2+T,d)
+        k = self.config.time_tokens
+        if k:
+            seg = segment_weights(mask, k)  # (B,T,k)
+            pooled = torch.einsum("btk,btd->bkd", seg, h[:, 2:]) / seg.sum(1).clamp_min(1.0)[..., None]  # (B,k,d)
+            return self.to_mu(pooled).reshape(B, -1), self.to_logvar(pooled).reshape(B, -1)
         return self.to_mu(h[:, 0]), self.to_logvar(h[:, 1])
 
     def decode(self, z: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """z (B,Z), mask (B,T) -> (B,T,263), exactly zero on padded frames."""
         B, T = mask.shape
-        memory = self.from_latent(z)[:, None]  # (B,1,d)
+        k = self.config.time_tokens
+        memory = self.from_latent(z.reshape(B, max(k, 1), -1))  # (B,k,d)
         queries = self.dec_pos(memory.new_zeros(B, T, self.config.d_model))  # (B,T,d)
-        if self.training:
+        if k:
+            queries = queries + torch.einsum("btk,bkd->btd", interpolation_weights(mask, k), memory)
+        if self.training or k:
             h = self.decoder(queries, memory, tgt_key_padding_mask=~mask)  # (B,T,d)
         else:  # the same function, the one-token cross-attention computed once per motion
             h = self.decoder(queries, apply=lambda layer, x: decoder_layer_one_token(layer, x, memory, ~mask))
@@ -237,6 +256,27 @@ class MotionVAE(nn.Module):
         mu, logvar = self.encode(x, mask)
         z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
         return self.decode(z, mask), mu, logvar
+
+
+def segment_weights(mask: torch.Tensor, k: int) -> torch.Tensor:
+    """(B,T) -> (B,T,k): 1 where frame t of a motion of L frames lies in its j-th k-th (floor(t k / L) = j), 0 on
+    padding: which frames each time token of :class:`MotionVAE` summarises."""
+    lengths = mask.sum(1, keepdim=True).clamp_min(1)  # (B,1)
+    t = torch.arange(mask.shape[1], device=mask.device)[None]
+    seg = torch.minimum(t * k // lengths, torch.full_like(t, k - 1))  # (B,T)
+    tokens = torch.arange(k, device=mask.device)
+    return ((seg[..., None] == tokens) & mask[..., None]).to(torch.float32)  # comparisons: exports to ONNX as is
+
+
+def interpolation_weights(mask: torch.Tensor, k: int) -> torch.Tensor:
+    """(B,T) -> (B,T,k): frame t's linear weights (summing to 1; 0 on padding) between the two time tokens whose
+    segment centres enclose it; before the first centre and after the last, that token alone."""
+    lengths = mask.sum(1, keepdim=True).clamp_min(1).to(torch.float32)
+    u = (torch.arange(mask.shape[1], device=mask.device)[None] + 0.5) * k / lengths - 0.5  # (B,T) token coordinate
+    u = u.clamp(0, k - 1)
+    tokens = torch.arange(k, device=mask.device, dtype=torch.float32)
+    w = (1 - (u[..., None] - tokens).abs()).clamp_min(0)  # hat functions: (1 - a) at floor(u), a at floor(u) + 1
+    return w * mask[..., None]
 
 
 def vae_loss(x_hat: torch.Tensor, x: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor, mask: torch.Tensor,

@@ -2,17 +2,16 @@
 from __future__ import annotations
 
 import secrets
-import unicodedata
 
 from pydantic import ValidationError
 
+from lsgan.generation import text_problem
 from lsgan.serve.engine import Engine, Item
 from lsgan.serve.limits import Limits
 from lsgan.serve.schemas import GenerateRequest, Keyframe
 
 FIELDS = ", ".join(GenerateRequest.model_fields)
 KEYFRAME_FIELDS = ", ".join(Keyframe.model_fields)
-ALLOWED_CONTROLS = "\t\n\r"  # whitespace a pasted prompt may hold; the tokenizer reads it as spaces
 DRAWN_SEEDS = 2**31  # a seed the server draws is below this
 
 
@@ -69,15 +68,10 @@ def _validation_message(error: ValidationError) -> str:
 
 
 def check_text(text: str, limits: Limits) -> str:
-    """The prompt, stripped; refused when empty, too long, or holding control characters or lone surrogates."""
-    bad = next((c for c in text if (unicodedata.category(c) == "Cc" and c not in ALLOWED_CONTROLS)
-                or unicodedata.category(c) == "Cs"), None)
-    if bad is not None:
-        kind = "a lone surrogate" if unicodedata.category(bad) == "Cs" else "a control character"
-        raise ApiError(422, f"text holds {kind} (U+{ord(bad):04X}); send printable text")
+    """The prompt, stripped; refused when too long or no prompt (:func:`lsgan.generation.text_problem`)."""
+    if problem := text_problem(text):
+        raise ApiError(422, problem)
     stripped = text.strip()
-    if not stripped:
-        raise ApiError(422, "text is empty: describe a motion, e.g. \"a person walks forward\"")
     if len(text) > limits.max_text_chars:
         raise ApiError(422, f"text is {len(text)} characters long; the limit is {limits.max_text_chars}")
     return stripped

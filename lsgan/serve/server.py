@@ -6,7 +6,8 @@ on one thread each under load (:mod:`lsgan.serve.batcher`); one when the engine 
 
 SIGTERM stops accepting connections, lets the requests in flight finish (uvicorn's graceful shutdown), stops the
 batcher's threads and the engine processes and returns normally, so the command exits 0. Ctrl-C does the same and
-then exits 130, as every lsgan command does.
+then exits 130, as every lsgan command does. A second signal does not cut the drain short (uvicorn would force the
+exit on one); SIGKILL stops at once.
 """
 from __future__ import annotations
 
@@ -105,6 +106,20 @@ def open_files_for(limits: Limits) -> None:
                          f"open {soft} (ulimit -n): lower --max-connections or raise the limit")
 
 
+def _draining_server(config):
+    """uvicorn's server, except that a second signal does not cut the drain short (uvicorn forces the exit on a
+    Ctrl-C after any signal, cancelling its lifespan task mid-await and logging that as a traceback): the requests in
+    flight always finish, within the graceful-shutdown timeout; SIGKILL remains for an immediate stop."""
+    import uvicorn
+
+    class DrainingServer(uvicorn.Server):
+        def handle_exit(self, sig: int, frame) -> None:
+            self._captured_signals.append(sig)  # as uvicorn's: raised again once it has shut down
+            self.should_exit = True
+
+    return DrainingServer(config)
+
+
 def serve(*, gan: str | None = None, vae: str | None = None, model: str | None = None, int8: bool = False,
           host: str = "127.0.0.1", port: int = 8000, api_key: str | None = None, limits: Limits | None = None,
           device: str = "auto", text_encoder_path: str | None = None, text_cache: int = 1024,
@@ -177,7 +192,7 @@ def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, 
         say(f"warning: listening on {host}: other machines can reach this server"
             + ("" if api_key else " and use it without a key (--api-key)"))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(engines, limits, api_key=api_key, hosts=hosts),
+    server = _draining_server(uvicorn.Config(create_app(engines, limits, api_key=api_key, hosts=hosts),
                                            http=protocol_class(limits), timeout_keep_alive=limits.keep_alive_s,
                                            log_level="warning", access_log=False, server_header=False,
                                            timeout_graceful_shutdown=limits.timeout_s + 5))
@@ -190,9 +205,13 @@ def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, 
         f"{url} (API /v1, docs {url}docs); "
         f"{'API key required' if api_key else 'no API key'}; Ctrl-C or SIGTERM stops")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    previous = signal.signal(signal.SIGTERM, lambda sig, frame: None)  # uvicorn re-raises it after draining
+    came: list[int] = []  # uvicorn re-raises the signals it caught after draining: recorded here, not raised inside it
+    previous = {s: signal.signal(s, lambda sig, frame: came.append(sig)) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         server.run(sockets=[sock])
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     say("lsgan serve: stopped")
+    if signal.SIGINT in came:  # Ctrl-C: the program exits 130, as every command does after one
+        signal.raise_signal(signal.SIGINT)

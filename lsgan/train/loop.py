@@ -23,6 +23,7 @@ metric that picks ``best/``. The loop owns the rest:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import random
@@ -431,10 +432,20 @@ def _checkpoint(env: Env, t: Trainer, p: Progress, folder: str, with_state: bool
 # ---------------------------------------------------------------------------------------------------- resuming
 
 
+def _with_defaults(saved, model) -> object:
+    """A saved model config with the fields it lacks at their defaults: a field added since it was saved defaults to
+    what the model did before it existed, so such a run still resumes."""
+    config = getattr(getattr(model, "module", model), "config", None)
+    if not (isinstance(saved, dict) and dataclasses.is_dataclass(config)):
+        return saved
+    defaults = {f.name: f.default for f in dataclasses.fields(config) if f.default is not dataclasses.MISSING}
+    return {**defaults, **saved}
+
+
 def _restore(env: Env, t: Trainer, prev: Previous, p: Progress, log: RunLog) -> None:
     """Weights, optimiser moments (with the hyperparameters given now), batch position, record and RNG of ``prev``."""
     saved = prev.meta["config"].get(t.same_config)
-    if t.same_config is not None and saved != t.config[t.same_config]:
+    if t.same_config is not None and _with_defaults(saved, t.model) != t.config[t.same_config]:
         raise ValueError(f"{prev.folder}: its {t.same_config} config {saved} differs from {t.config[t.same_config]}")
     t.model.load_state_dict(prev.weights)
     for key, opt in t.optimizers.items():
