@@ -92,10 +92,10 @@ def unusable_rows(x: np.ndarray) -> np.ndarray:
     return np.flatnonzero(~(np.abs(x) <= FEATURE_LIMIT).all(axis=1))  # NaN compares false
 
 
-CONTENT_FLOOR = 512 << 20
-"""Up to this many declared bytes (about 7 hours of motion) a compressed dataset may inflate as far as its filters
-can: half a GiB puts no machine at risk, and a file damaged into constant values (its features overwritten with NaN)
-reaches the check that says so."""
+CONTENT_FLOOR = 256 << 20
+"""Up to this many declared bytes (about 3.5 hours of motion) a compressed dataset may inflate as far as its filters
+can: a quarter of a GiB puts no machine at risk, and a file damaged into constant values (its features overwritten
+with NaN) reaches the check that says so; above it, such a file reads as what it resembles, a decompression bomb."""
 
 FILTER_MAX_RATIO = {h5py.h5z.FILTER_DEFLATE: DEFLATE_MAX_RATIO, h5py.h5z.FILTER_LZF: 88, h5py.h5z.FILTER_SHUFFLE: 1,
                     h5py.h5z.FILTER_FLETCHER32: 1}
