@@ -198,16 +198,23 @@ def _run(engines: list[Engine], limits: Limits, sock: socket.socket, host: str, 
                                            timeout_graceful_shutdown=limits.timeout_s + 5))
     gc.collect()
     gc.freeze()  # the app's objects stay out of every later collection (the child does so for the models)
-    sock.listen(BACKLOG)  # from here connections wait in the backlog until uvicorn accepts them
-    url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
-    processes = f"{len(engines)} engine processes" if len(engines) > 1 else "one engine process"
-    say(f"lsgan serve: {engines[0].describe()}, {processes}, loaded in {sum(e.load_s for e in engines):.1f} s; "
-        f"{url} (API /v1, docs {url}docs); "
-        f"{'API key required' if api_key else 'no API key'}; Ctrl-C or SIGTERM stops")
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    came: list[int] = []  # uvicorn re-raises the signals it caught after draining: recorded here, not raised inside it
-    previous = {s: signal.signal(s, lambda sig, frame: came.append(sig)) for s in (signal.SIGTERM, signal.SIGINT)}
+    came: list[int] = []  # from before the line saying the server is ready
+
+    def record(sig: int, frame) -> None:
+        """A signal before uvicorn takes them (it would never stop) or one it raises again after draining (raised
+        inside it, an exception becomes a traceback): noted, and the server told to stop."""
+        came.append(sig)
+        server.should_exit = True
+
+    previous = {s: signal.signal(s, record) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
+        sock.listen(BACKLOG)  # from here connections wait in the backlog until uvicorn accepts them
+        url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
+        processes = f"{len(engines)} engine processes" if len(engines) > 1 else "one engine process"
+        say(f"lsgan serve: {engines[0].describe()}, {processes}, loaded in {sum(e.load_s for e in engines):.1f} s; "
+            f"{url} (API /v1, docs {url}docs); "
+            f"{'API key required' if api_key else 'no API key'}; Ctrl-C or SIGTERM stops")
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         server.run(sockets=[sock])
     finally:
         for s, handler in previous.items():
