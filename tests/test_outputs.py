@@ -141,6 +141,25 @@ def test_a_registry_that_is_not_lsgans_is_not_overwritten(tmp_path):
     assert (tmp_path / outputs.REGISTRY).read_text() == "my notes"
 
 
+def test_the_registrys_temporary_is_removed_only_when_lsgans(tmp_path, monkeypatch):
+    """A user's file under the registry's temporary name is refused and kept; lsgan's own temporary is removed
+    when the write is interrupted (a Ctrl-C between writing it and renaming it left it behind)."""
+    user = tmp_path / "u"
+    user.mkdir()
+    (user / (outputs.REGISTRY + ".tmp")).write_text("my notes")
+    with pytest.raises(outputs.OutputError, match="not lsgan's registry"):
+        _write(user / "a.bin", b"x")
+    assert (user / (outputs.REGISTRY + ".tmp")).read_text() == "my notes"
+
+    def interrupted(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _write(tmp_path / "b.bin", b"x")
+    assert not (tmp_path / (outputs.REGISTRY + ".tmp")).exists()
+
+
 def test_sweep_removes_only_recorded_temporaries_of_dead_processes(tmp_path):
     """B4: names that look like temporaries are the user's unless the registry recorded them."""
     lookalikes = [tmp_path / ".out.h5.2023.old", tmp_path / ".out.h5.99999999.abcdefgh.tmp"]
